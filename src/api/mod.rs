@@ -1,0 +1,3 @@
+//! Network APIs over the engine (HTTP now; gRPC joins here).
+pub mod error;
+pub mod http;

@@ -1,0 +1,81 @@
+//! Command-line interface: one file per subcommand.
+mod classify;
+mod embed;
+mod images;
+mod serve;
+mod weights;
+
+use crate::model::config::{parse_input_size, ModelConfig, ResizeMode};
+use crate::model::device::{parse_device, DType};
+use crate::model::Model;
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(name = "loopd", version, about = "Loop-closure detection service: attention ResNet50 descriptors and map sessions")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand)]
+pub enum Command {
+    /// Run the server (HTTP) on a local data directory.
+    Serve(serve::ServeArgs),
+    /// Weight file tools.
+    #[command(subcommand)]
+    Weights(weights::WeightsCommand),
+    /// Top-5 ImageNet classes of each image (checks weights and preprocessing).
+    Classify(classify::ClassifyArgs),
+    /// The loop-closure descriptor of each image.
+    Embed(embed::EmbedArgs),
+}
+
+/// Options shared by every command that runs the network.
+#[derive(Args, Clone, Debug)]
+pub struct ModelArgs {
+    /// loopd weight file (safetensors), as written by `loopd weights import`.
+    #[arg(long, env = "LOOPD_WEIGHTS", default_value = "weights/resnet50-imagenet.safetensors")]
+    pub weights: PathBuf,
+    /// auto, cpu, cuda or cuda:N.
+    #[arg(long, env = "LOOPD_DEVICE", default_value = "auto")]
+    pub device: String,
+    /// Precision; f16 and bf16 need CUDA.
+    #[arg(long, env = "LOOPD_DTYPE", value_enum, default_value = "f32")]
+    pub dtype: DType,
+    /// Network input size: N or WxH.
+    #[arg(long, default_value = "224", value_parser = parse_input_size)]
+    pub input_size: (u32, u32),
+    /// stretch to the input size, or keep the aspect ratio inside it.
+    #[arg(long, value_enum, default_value = "stretch")]
+    pub resize: ResizeMode,
+}
+
+impl ModelArgs {
+    pub fn config(&self) -> ModelConfig {
+        let mut cfg = ModelConfig::default();
+        cfg.preprocess.width = self.input_size.0;
+        cfg.preprocess.height = self.input_size.1;
+        cfg.preprocess.resize = self.resize;
+        cfg
+    }
+
+    pub fn load(&self) -> Result<Model> {
+        let device = parse_device(&self.device)?;
+        let (model, report) = Model::load(&self.weights, self.config(), device, self.dtype)
+            .with_context(|| format!("loading weights {} (run scripts/dev setup to import them)", self.weights.display()))?;
+        tracing::debug!(?report, device = ?model.device, "model loaded");
+        Ok(model)
+    }
+}
+
+pub fn run(cli: Cli) -> Result<ExitCode> {
+    match cli.command {
+        Command::Serve(a) => serve::run(a),
+        Command::Weights(c) => weights::run(c),
+        Command::Classify(a) => classify::run(a),
+        Command::Embed(a) => embed::run(a),
+    }
+}

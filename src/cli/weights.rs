@@ -1,0 +1,41 @@
+use crate::model::config::ModelConfig;
+use crate::model::tfjs;
+use crate::model::weights::{load_into, WeightFile};
+use crate::model::Model;
+use anyhow::{Context, Result};
+use clap::Subcommand;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Subcommand)]
+pub enum WeightsCommand {
+    /// Convert a Keras ResNet50 in TF.js form (model.json + shards) to a loopd safetensors file.
+    Import {
+        /// Folder holding model.json and its shards.
+        #[arg(long)]
+        tfjs: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+pub fn run(c: WeightsCommand) -> Result<ExitCode> {
+    match c {
+        WeightsCommand::Import { tfjs: dir, out } => {
+            let imported = tfjs::import(&dir).with_context(|| format!("importing {}", dir.display()))?;
+            // Prove the result fits the network exactly before writing it.
+            let model = Model::new(ModelConfig::default(), tch::Device::Cpu, crate::model::device::DType::F32)?;
+            let file = WeightFile { metadata: imported.metadata.clone(), tensors: imported.tensors };
+            let report = load_into(model.var_store(), &file)?;
+            WeightFile::write(&out, &file.tensors, file.metadata)?;
+            eprintln!(
+                "imported {} Keras arrays ({} bytes of shards) into {} tensors -> {}",
+                imported.keras_arrays,
+                imported.shard_bytes,
+                report.backbone_tensors,
+                out.display()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+    }
+}

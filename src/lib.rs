@@ -1,0 +1,7 @@
+//! loopd: loop-closure detection as a service.
+//!
+//! Layers, dependencies pointing one way: `api` -> `engine` -> `model`, `store`.
+pub mod api;
+pub mod cli;
+pub mod engine;
+pub mod model;

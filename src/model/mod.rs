@@ -1,0 +1,120 @@
+//! The descriptor model: network definition, weights, preprocessing.
+pub mod attention;
+pub mod backbone;
+pub mod config;
+pub mod device;
+pub mod fusion;
+pub mod labels;
+pub mod network;
+pub mod preprocess;
+pub mod tfjs;
+pub mod weights;
+
+use anyhow::{bail, Result};
+use config::{ModelConfig, Normalization, StrideLayout};
+use device::DType;
+use network::{Network, Variant};
+use std::path::Path;
+use tch::{nn::VarStore, Device, Tensor};
+use weights::{LoadReport, WeightFile};
+
+/// A network on its device with its weights: the one object that runs forward passes.
+/// Not `Sync` (tch tensors); the engine gives it to a single thread.
+pub struct Model {
+    pub config: ModelConfig,
+    pub device: Device,
+    pub dtype: DType,
+    vs: VarStore,
+    net: Network,
+}
+
+impl Model {
+    /// A model with the var store's default initialisation (heads at identity).
+    pub fn new(config: ModelConfig, device: Device, dtype: DType) -> Result<Self> {
+        dtype.check(device)?;
+        let vs = VarStore::new(Device::Cpu);
+        let net = Network::new(&vs.root(), &config);
+        Ok(Self { config, device, dtype, vs, net })
+    }
+
+    /// Loads a loopd weight file; its metadata fixes the stride layout and normalisation.
+    pub fn load(path: &Path, mut config: ModelConfig, device: Device, dtype: DType) -> Result<(Self, LoadReport)> {
+        let file = WeightFile::read(path)?;
+        if let Some(layout) = file.metadata.get(weights::META_STRIDE_LAYOUT) {
+            config.stride_layout = serde_json::from_value::<StrideLayout>(layout.as_str().into())?;
+        }
+        if let Some(norm) = file.metadata.get(weights::META_NORMALIZATION) {
+            config.preprocess.normalization = serde_json::from_value::<Normalization>(norm.as_str().into())?;
+        }
+        let mut model = Self::new(config, Device::Cpu, DType::F32)?;
+        let report = weights::load_into(&model.vs, &file)?;
+        model.to(device, dtype)?;
+        Ok((model, report))
+    }
+
+    pub fn to(&mut self, device: Device, dtype: DType) -> Result<()> {
+        dtype.check(device)?;
+        self.vs.set_device(device);
+        self.vs.set_kind(dtype.kind());
+        self.device = device;
+        self.dtype = dtype;
+        Ok(())
+    }
+
+    pub fn var_store(&self) -> &VarStore {
+        &self.vs
+    }
+
+    /// Sets every attention/fusion parameter to seeded random values (tests, benchmarks).
+    pub fn randomize(&self, seed: i64, heads_only: bool) {
+        tch::manual_seed(seed);
+        tch::no_grad(|| {
+            for (name, mut t) in self.vs.variables() {
+                let head = network::HEAD_PREFIXES.iter().any(|p| name.starts_with(p));
+                if heads_only && !head {
+                    continue;
+                }
+                let fan_in: i64 = t.size().iter().skip(1).product::<i64>().max(1);
+                let r = if name.ends_with("running_var") {
+                    Tensor::rand_like(&t) + 0.5
+                } else if t.dim() == 1 {
+                    Tensor::randn_like(&t) * 0.1
+                } else {
+                    Tensor::randn_like(&t) * (1.0 / fan_in as f64).sqrt()
+                };
+                t.copy_(&r);
+            }
+        });
+    }
+
+    fn batch(&self, inputs: &[Tensor]) -> Result<Tensor> {
+        if inputs.is_empty() {
+            bail!("empty batch");
+        }
+        let shape = inputs[0].size();
+        if inputs.iter().any(|t| t.size() != shape) {
+            bail!("inputs of one batch must share a size");
+        }
+        Ok(Tensor::stack(inputs, 0).to_device(self.device).to_kind(self.dtype.kind()))
+    }
+
+    /// Unit descriptors, [N, 2048] f32 on the CPU, for same-size preprocessed inputs.
+    pub fn descriptors(&self, inputs: &[Tensor], v: Variant) -> Result<Tensor> {
+        let x = self.batch(inputs)?;
+        let d = tch::no_grad(|| self.net.descriptor(&x, v));
+        // Renormalise in f32: half-precision norms are off by ~1e-3.
+        Ok(network::l2_normalize(&d.to_kind(tch::Kind::Float)).to_device(Device::Cpu))
+    }
+
+    /// ImageNet probabilities, [N, 1000] f32 on the CPU.
+    pub fn class_probabilities(&self, inputs: &[Tensor]) -> Result<Tensor> {
+        let x = self.batch(inputs)?;
+        Ok(tch::no_grad(|| self.net.class_probabilities(&x)).to_kind(tch::Kind::Float).to_device(Device::Cpu))
+    }
+}
+
+/// Rows of a [N, D] CPU float tensor.
+pub fn rows(t: &Tensor) -> Result<Vec<Vec<f32>>> {
+    let t = t.to_kind(tch::Kind::Float).contiguous();
+    Ok(Vec::<Vec<f32>>::try_from(t)?)
+}

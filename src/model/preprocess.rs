@@ -1,0 +1,111 @@
+//! Image bytes -> network input: decoding under explicit limits, resizing, normalisation.
+use super::config::{Normalization, Preprocess, ResizeMode};
+use image::{imageops::FilterType, ImageReader, RgbImage};
+use std::io::Cursor;
+use tch::Tensor;
+
+/// Keras "caffe" mean, in BGR order.
+const CAFFE_MEAN_BGR: [f32; 3] = [103.939, 116.779, 123.68];
+const TORCH_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
+const TORCH_STD: [f32; 3] = [0.229, 0.224, 0.225];
+
+/// What an incoming image may be. Checked before any large allocation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageLimits {
+    pub max_bytes: usize,
+    pub max_pixels: u64,
+    /// Smallest side accepted: a few pixels hold no place information.
+    pub min_side: u32,
+}
+
+impl Default for ImageLimits {
+    fn default() -> Self {
+        Self { max_bytes: 16 << 20, max_pixels: 40_000_000, min_side: 16 }
+    }
+}
+
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum ImageError {
+    #[error("image is empty (0 bytes)")]
+    Empty,
+    #[error("image is {bytes} bytes, above the limit of {max} bytes")]
+    TooManyBytes { bytes: usize, max: usize },
+    #[error("not a supported image format (JPEG, PNG, BMP, TIFF or WebP expected)")]
+    UnknownFormat,
+    #[error("image is {width}x{height} = {} pixels, above the limit of {max} pixels", *width as u64 * *height as u64)]
+    TooManyPixels { width: u32, height: u32, max: u64 },
+    #[error("image is {width}x{height}; each side must be at least {min} pixels")]
+    TooSmall { width: u32, height: u32, min: u32 },
+    #[error("cannot decode image: {0}")]
+    Corrupt(String),
+}
+
+/// Decodes to RGB, refusing oversized headers before the pixel buffer is allocated.
+pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<RgbImage, ImageError> {
+    if bytes.is_empty() {
+        return Err(ImageError::Empty);
+    }
+    if bytes.len() > limits.max_bytes {
+        return Err(ImageError::TooManyBytes { bytes: bytes.len(), max: limits.max_bytes });
+    }
+    let reader = || ImageReader::new(Cursor::new(bytes)).with_guessed_format().map_err(|e| ImageError::Corrupt(e.to_string()));
+    let probe = reader()?;
+    if probe.format().is_none() {
+        return Err(ImageError::UnknownFormat);
+    }
+    let (width, height) = probe.into_dimensions().map_err(|e| ImageError::Corrupt(e.to_string()))?;
+    if width as u64 * height as u64 > limits.max_pixels {
+        return Err(ImageError::TooManyPixels { width, height, max: limits.max_pixels });
+    }
+    if width < limits.min_side || height < limits.min_side {
+        return Err(ImageError::TooSmall { width, height, min: limits.min_side });
+    }
+    let mut r = reader()?;
+    let mut dl = image::Limits::default();
+    dl.max_image_width = Some(width);
+    dl.max_image_height = Some(height);
+    dl.max_alloc = Some(limits.max_pixels.saturating_mul(16));
+    r.limits(dl);
+    let img = r.decode().map_err(|e| ImageError::Corrupt(e.to_string()))?;
+    Ok(img.to_rgb8())
+}
+
+/// Output size for an image of `w` x `h`.
+pub fn target_size(w: u32, h: u32, p: &Preprocess) -> (u32, u32) {
+    match p.resize {
+        ResizeMode::Stretch => (p.width, p.height),
+        ResizeMode::Keep => {
+            let s = (p.width as f64 / w as f64).min(p.height as f64 / h as f64);
+            (((w as f64 * s).round() as u32).max(32), ((h as f64 * s).round() as u32).max(32))
+        }
+    }
+}
+
+/// Resized, normalised CHW float tensor ([3, H, W]) ready to stack into a batch.
+pub fn to_input(img: &RgbImage, p: &Preprocess) -> Tensor {
+    let (w, h) = target_size(img.width(), img.height(), p);
+    let resized = if (w, h) == img.dimensions() { img.clone() } else { image::imageops::resize(img, w, h, FilterType::Triangle) };
+    let plane = (w * h) as usize;
+    let mut chw = vec![0f32; 3 * plane];
+    for (i, px) in resized.pixels().enumerate() {
+        let [r, g, b] = px.0.map(f32::from);
+        match p.normalization {
+            Normalization::Caffe => {
+                chw[i] = b - CAFFE_MEAN_BGR[0];
+                chw[plane + i] = g - CAFFE_MEAN_BGR[1];
+                chw[2 * plane + i] = r - CAFFE_MEAN_BGR[2];
+            }
+            Normalization::Torch => {
+                for (c, v) in [r, g, b].into_iter().enumerate() {
+                    chw[c * plane + i] = (v / 255.0 - TORCH_MEAN[c]) / TORCH_STD[c];
+                }
+            }
+        }
+    }
+    Tensor::from_slice(&chw).reshape([3, h as i64, w as i64])
+}
+
+/// Decode and preprocess in one step (the work of a decoding worker).
+pub fn prepare(bytes: &[u8], limits: &ImageLimits, p: &Preprocess) -> Result<Tensor, ImageError> {
+    Ok(to_input(&decode(bytes, limits)?, p))
+}

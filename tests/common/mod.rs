@@ -1,0 +1,48 @@
+//! Paths and loaders shared by the integration tests (real data, real weights).
+#![allow(dead_code)]
+use loopd::model::config::ModelConfig;
+use loopd::model::device::DType;
+use loopd::model::Model;
+use std::path::PathBuf;
+
+pub fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// `../shared/data` beside the checkout (LOOPD_SHARED_DATA overrides).
+pub fn data(rel: &str) -> PathBuf {
+    let base = std::env::var("LOOPD_SHARED_DATA").map(PathBuf::from).unwrap_or_else(|_| root().join("../shared/data"));
+    let p = base.join(rel);
+    assert!(p.exists(), "missing real data {} (../shared/data beside the repo)", p.display());
+    p
+}
+
+/// The imported ImageNet weights (scripts/dev setup writes them).
+pub fn weights() -> PathBuf {
+    let p = root().join("weights/resnet50-imagenet.safetensors");
+    assert!(p.exists(), "missing {}: run scripts/dev setup", p.display());
+    p
+}
+
+pub fn imagenet_model() -> Model {
+    Model::load(&weights(), ModelConfig::default(), tch::Device::Cpu, DType::F32).expect("loading weights").0
+}
+
+pub const PHOTOS: [&str; 9] =
+    ["dog.jpg", "eagle.jpg", "giraffe.jpg", "horses.jpg", "kite.jpg", "person.jpg", "scream.jpg", "tokyo_db.png", "tokyo_query.jpg"];
+
+pub fn photo_inputs(model: &Model) -> Vec<tch::Tensor> {
+    PHOTOS
+        .iter()
+        .map(|p| {
+            let bytes = std::fs::read(data(&format!("photos/{p}"))).expect("reading photo");
+            loopd::model::preprocess::prepare(&bytes, &Default::default(), &model.config.preprocess).expect("photo decodes")
+        })
+        .collect()
+}
+
+pub fn loopd_bin() -> std::process::Command {
+    let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_loopd"));
+    c.current_dir(root()).env("LOOPD_DEVICE", "cpu");
+    c
+}
