@@ -20,7 +20,8 @@ fn main() -> anyhow::Result<()> {
     }
     let device = parse_device(&env("LOOPD_BENCH_DEVICE", "cpu"))?;
     let dtype: DType = serde_json::from_value(env("LOOPD_BENCH_DTYPE", "f32").into())?;
-    let batches: Vec<i64> = env("LOOPD_BENCH_BATCHES", "1,8,32").split(',').map(|s| s.trim().parse()).collect::<Result<_, _>>()?;
+    let batches: Vec<i64> =
+        env("LOOPD_BENCH_BATCHES", "1,8,32").split(',').map(|s| s.trim().parse()).collect::<Result<_, _>>()?;
     let budget = Duration::from_secs_f64(env("LOOPD_BENCH_SECONDS", "6").parse()?);
     let model = Model::new(ModelConfig::default(), device, dtype)?;
     model.randomize(0, false);
@@ -29,7 +30,8 @@ fn main() -> anyhow::Result<()> {
     println!("| batch | backbone img/s | full img/s | full / backbone time | attention+fusion cost |");
     println!("|------:|---------------:|-----------:|---------------------:|----------------------:|");
     for &b in &batches {
-        let inputs: Vec<Tensor> = (0..b).map(|_| Tensor::randn([3, 224, 224], (Kind::Float, tch::Device::Cpu)) * 50.0).collect();
+        let inputs: Vec<Tensor> =
+            (0..b).map(|_| Tensor::randn([3, 224, 224], (Kind::Float, tch::Device::Cpu)) * 50.0).collect();
         let run = |v: Variant| -> anyhow::Result<f64> {
             let t = Instant::now();
             let d = model.descriptors(&inputs, v)?; // copies to the CPU, so the device has finished

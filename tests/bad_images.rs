@@ -54,9 +54,15 @@ fn cases() -> Vec<(&'static str, Vec<u8>)> {
 #[test]
 fn decoder_returns_a_specific_error_for_each_bad_image() {
     let limits = ImageLimits::default();
-    let errors: Vec<_> = cases().iter().map(|(name, bytes)| (*name, decode(bytes, &limits).unwrap_err())).collect();
+    let errors: Vec<_> = cases()
+        .iter()
+        .map(|(name, bytes)| match decode(bytes, &limits) {
+            Ok(img) => panic!("{name} decoded as {}x{}", img.width(), img.height()),
+            Err(e) => (*name, e),
+        })
+        .collect();
     assert_eq!(errors[0].1, ImageError::Empty);
-    assert!(matches!(errors[1].1, ImageError::Corrupt(_)), "truncated: {:?}", errors[1].1);
+    assert_eq!(errors[1].1, ImageError::Corrupt("JPEG is truncated (no end-of-image marker)".into()));
     assert_eq!(errors[2].1, ImageError::UnknownFormat);
     assert_eq!(errors[3].1, ImageError::TooSmall { width: 1, height: 1, min: 16 });
     assert_eq!(errors[4].1, ImageError::TooManyPixels { width: 100_000, height: 100_000, max: limits.max_pixels });
@@ -84,16 +90,46 @@ fn cli_reports_each_bad_file_and_still_embeds_the_good_one() {
     assert!(!stderr.contains("panicked"), "{stderr}");
     for (name, msg) in [
         ("empty.jpg", "empty"),
-        ("truncated.jpg", "cannot decode"),
+        ("truncated.jpg", "truncated"),
         ("notes.txt", "not a supported image format"),
         ("one-pixel.png", "at least 16 pixels"),
         ("huge-header.png", "above the limit"),
     ] {
-        let line = stderr.lines().find(|l| l.contains(name)).unwrap_or_else(|| panic!("no error line for {name}: {stderr}"));
+        let line =
+            stderr.lines().find(|l| l.contains(name)).unwrap_or_else(|| panic!("no error line for {name}: {stderr}"));
         assert!(line.contains(msg), "{name}: {line}");
     }
     let lines: Vec<serde_json::Value> = stdout.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert_eq!(lines.len(), 1, "only the good image is embedded");
     assert!(lines[0]["path"].as_str().unwrap().ends_with("kite.jpg"));
     assert_eq!(lines[0]["descriptor"].as_array().unwrap().len(), 2048);
+}
+
+#[test]
+fn every_real_frame_in_shared_data_decodes() {
+    // The strict checks (truncation, size) must not reject real camera frames.
+    let limits = ImageLimits::default();
+    let mut n = 0;
+    for dir in [
+        "photos",
+        "corridor/query",
+        "corridor/ref",
+        "slambook2-ch11",
+        "euroc-lcd",
+        "nordland-64x32/summer",
+        "nordland-64x32/winter",
+    ] {
+        for entry in std::fs::read_dir(data(dir)).unwrap() {
+            let p = entry.unwrap().path();
+            let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("").to_lowercase();
+            if !["jpg", "jpeg", "png"].contains(&ext.as_str()) {
+                continue;
+            }
+            if let Err(e) = decode(&std::fs::read(&p).unwrap(), &limits) {
+                panic!("{}: {e}", p.display());
+            }
+            n += 1;
+        }
+    }
+    assert!(n > 4000, "only {n} frames found");
 }

@@ -41,7 +41,7 @@ fn nothing_is_left_random_after_loading() {
     let a = imagenet_model();
     tch::manual_seed(2);
     let b = imagenet_model();
-    let inputs = photo_inputs(&a)[..2].to_vec();
+    let inputs: Vec<Tensor> = photo_inputs(&a).into_iter().take(2).collect();
     for v in Variant::ALL {
         let da = a.descriptors(&inputs, v).unwrap();
         let db = b.descriptors(&inputs, v).unwrap();
@@ -68,7 +68,10 @@ fn tokyo_pair_is_the_most_similar_pair() {
     let model = imagenet_model();
     let d = rows(&model.descriptors(&photo_inputs(&model), Variant::FULL).unwrap()).unwrap();
     let cos = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f32>();
-    let (db, q) = (PHOTOS.iter().position(|p| *p == "tokyo_db.png").unwrap(), PHOTOS.iter().position(|p| *p == "tokyo_query.jpg").unwrap());
+    let (db, q) = (
+        PHOTOS.iter().position(|p| *p == "tokyo_db.png").unwrap(),
+        PHOTOS.iter().position(|p| *p == "tokyo_query.jpg").unwrap(),
+    );
     let pair = cos(&d[db], &d[q]);
     for (i, name) in PHOTOS.iter().enumerate() {
         if i == db || i == q {

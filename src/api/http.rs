@@ -37,7 +37,12 @@ struct Info {
 }
 
 async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
-    Json(Info { descriptor_id: s.engine.descriptor_id.clone(), dim: DESCRIPTOR_DIM, device: s.device.clone(), version: env!("CARGO_PKG_VERSION") })
+    Json(Info {
+        descriptor_id: s.engine.descriptor_id.clone(),
+        dim: DESCRIPTOR_DIM,
+        device: s.device.clone(),
+        version: env!("CARGO_PKG_VERSION"),
+    })
 }
 
 #[derive(Deserialize)]
@@ -59,7 +64,11 @@ struct EmbedResponse {
 }
 
 /// Raw image bytes in, unit descriptor out.
-async fn embed(State(s): State<Arc<AppState>>, Query(q): Query<EmbedQuery>, body: Bytes) -> Result<Json<EmbedResponse>, ApiError> {
+async fn embed(
+    State(s): State<Arc<AppState>>,
+    Query(q): Query<EmbedQuery>,
+    body: Bytes,
+) -> Result<Json<EmbedResponse>, ApiError> {
     let (limits, pre) = (s.limits, s.engine.preprocess.clone());
     // Decoding runs on the blocking pool, never on the model thread.
     let input = tokio::task::spawn_blocking(move || prepare(&body, &limits, &pre))

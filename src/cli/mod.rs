@@ -14,7 +14,11 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Parser)]
-#[command(name = "loopd", version, about = "Loop-closure detection service: attention ResNet50 descriptors and map sessions")]
+#[command(
+    name = "loopd",
+    version,
+    about = "Loop-closure detection service: attention ResNet50 descriptors and map sessions"
+)]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
@@ -64,8 +68,9 @@ impl ModelArgs {
 
     pub fn load(&self) -> Result<Model> {
         let device = parse_device(&self.device)?;
-        let (model, report) = Model::load(&self.weights, self.config(), device, self.dtype)
-            .with_context(|| format!("loading weights {} (run scripts/dev setup to import them)", self.weights.display()))?;
+        let (model, report) = Model::load(&self.weights, self.config(), device, self.dtype).with_context(|| {
+            format!("loading weights {} (run scripts/dev setup to import them)", self.weights.display())
+        })?;
         tracing::debug!(?report, device = ?model.device, "model loaded");
         Ok(model)
     }

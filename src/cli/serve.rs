@@ -38,13 +38,18 @@ pub fn run(a: ServeArgs) -> Result<ExitCode> {
     let device = device_name(model.device);
     let engine = Engine::start(
         model,
-        EngineConfig { max_batch: a.max_batch.max(1), max_delay: Duration::from_millis(a.max_delay_ms), queue_capacity: a.queue_capacity.max(1) },
+        EngineConfig {
+            max_batch: a.max_batch.max(1),
+            max_delay: Duration::from_millis(a.max_delay_ms),
+            queue_capacity: a.queue_capacity.max(1),
+        },
     );
     let limits = ImageLimits { max_bytes: a.max_image_bytes, max_pixels: a.max_image_pixels, ..Default::default() };
     let state = Arc::new(AppState { engine, limits, device });
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
-        let listener = tokio::net::TcpListener::bind(&a.http_addr).await.with_context(|| format!("binding {}", a.http_addr))?;
+        let listener =
+            tokio::net::TcpListener::bind(&a.http_addr).await.with_context(|| format!("binding {}", a.http_addr))?;
         tracing::info!(addr = %listener.local_addr()?, data_dir = %a.data_dir.display(), "loopd serving HTTP");
         axum::serve(listener, router(state))
             .with_graceful_shutdown(async {

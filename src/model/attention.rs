@@ -115,7 +115,10 @@ pub struct StageAttention {
 
 impl StageAttention {
     pub fn new(p: &nn::Path, c: i64, reduction: i64) -> Self {
-        Self { channel: ChannelAttention::new(&(p / "channel"), c, reduction), spatial: SpatialAttention::new(&(p / "spatial")) }
+        Self {
+            channel: ChannelAttention::new(&(p / "channel"), c, reduction),
+            spatial: SpatialAttention::new(&(p / "spatial")),
+        }
     }
 
     pub fn forward(&self, x: &Tensor) -> Tensor {

@@ -5,7 +5,8 @@ use std::path::Path;
 
 pub fn load(path: &Path) -> Result<Vec<String>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("reading labels {}", path.display()))?;
-    let map: HashMap<String, String> = serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    let map: HashMap<String, String> =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
     let mut labels = vec![String::new(); map.len()];
     for (k, v) in map {
         let i: usize = k.parse().with_context(|| format!("label key '{k}' is not an index"))?;

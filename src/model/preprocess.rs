@@ -48,9 +48,11 @@ pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<RgbImage, ImageError
     if bytes.len() > limits.max_bytes {
         return Err(ImageError::TooManyBytes { bytes: bytes.len(), max: limits.max_bytes });
     }
-    let reader = || ImageReader::new(Cursor::new(bytes)).with_guessed_format().map_err(|e| ImageError::Corrupt(e.to_string()));
+    let reader =
+        || ImageReader::new(Cursor::new(bytes)).with_guessed_format().map_err(|e| ImageError::Corrupt(e.to_string()));
     let probe = reader()?;
-    if probe.format().is_none() {
+    let probe_format = probe.format();
+    if probe_format.is_none() {
         return Err(ImageError::UnknownFormat);
     }
     let (width, height) = probe.into_dimensions().map_err(|e| ImageError::Corrupt(e.to_string()))?;
@@ -59,6 +61,10 @@ pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<RgbImage, ImageError
     }
     if width < limits.min_side || height < limits.min_side {
         return Err(ImageError::TooSmall { width, height, min: limits.min_side });
+    }
+    if probe_format == Some(image::ImageFormat::Jpeg) && !jpeg_is_complete(bytes) {
+        // Decoders fill a cut-off JPEG with grey and report success; a partial frame is not a place.
+        return Err(ImageError::Corrupt("JPEG is truncated (no end-of-image marker)".into()));
     }
     let mut r = reader()?;
     let mut dl = image::Limits::default();
@@ -84,7 +90,8 @@ pub fn target_size(w: u32, h: u32, p: &Preprocess) -> (u32, u32) {
 /// Resized, normalised CHW float tensor ([3, H, W]) ready to stack into a batch.
 pub fn to_input(img: &RgbImage, p: &Preprocess) -> Tensor {
     let (w, h) = target_size(img.width(), img.height(), p);
-    let resized = if (w, h) == img.dimensions() { img.clone() } else { image::imageops::resize(img, w, h, FilterType::Triangle) };
+    let resized =
+        if (w, h) == img.dimensions() { img.clone() } else { image::imageops::resize(img, w, h, FilterType::Triangle) };
     let plane = (w * h) as usize;
     let mut chw = vec![0f32; 3 * plane];
     for (i, px) in resized.pixels().enumerate() {
@@ -108,4 +115,34 @@ pub fn to_input(img: &RgbImage, p: &Preprocess) -> Tensor {
 /// Decode and preprocess in one step (the work of a decoding worker).
 pub fn prepare(bytes: &[u8], limits: &ImageLimits, p: &Preprocess) -> Result<Tensor, ImageError> {
     Ok(to_input(&decode(bytes, limits)?, p))
+}
+
+/// Walks the JPEG's segments and entropy-coded scans and reports whether the
+/// end-of-image marker is reached before the data runs out.
+fn jpeg_is_complete(b: &[u8]) -> bool {
+    let mut i = 2; // after SOI
+    while i + 1 < b.len() {
+        if b[i] != 0xFF {
+            return false;
+        }
+        let marker = b[i + 1];
+        match marker {
+            0xD9 => return true,
+            0xFF => i += 1, // fill byte
+            0x01 | 0xD0..=0xD7 => i += 2,
+            _ => {
+                let Some(len) = b.get(i + 2..i + 4).map(|l| u16::from_be_bytes([l[0], l[1]]) as usize) else {
+                    return false;
+                };
+                i += 2 + len;
+                if marker == 0xDA {
+                    // Entropy-coded data runs to the next marker that is not stuffing or a restart.
+                    while i + 1 < b.len() && !(b[i] == 0xFF && b[i + 1] != 0x00 && !(0xD0..=0xD7).contains(&b[i + 1])) {
+                        i += 1;
+                    }
+                }
+            }
+        }
+    }
+    false
 }

@@ -128,8 +128,16 @@ fn conv_bn(
     let eps = cfg.get(bn).and_then(|c| c.get("epsilon")).and_then(Value::as_f64).unwrap_or(1e-3);
     // (var + eps) stays the same denominator when the runtime eps is BN_EPS.
     let var = var + (eps - BN_EPS);
-    let gamma = if a.has(&format!("{bn}/gamma")) { a.take(&format!("{bn}/gamma"))? } else { Tensor::ones([c], tch::kind::FLOAT_CPU) };
-    let beta = if a.has(&format!("{bn}/beta")) { a.take(&format!("{bn}/beta"))? } else { Tensor::zeros([c], tch::kind::FLOAT_CPU) };
+    let gamma = if a.has(&format!("{bn}/gamma")) {
+        a.take(&format!("{bn}/gamma"))?
+    } else {
+        Tensor::ones([c], tch::kind::FLOAT_CPU)
+    };
+    let beta = if a.has(&format!("{bn}/beta")) {
+        a.take(&format!("{bn}/beta"))?
+    } else {
+        Tensor::zeros([c], tch::kind::FLOAT_CPU)
+    };
     out.push((format!("{}.weight", torch.1), gamma));
     out.push((format!("{}.bias", torch.1), beta));
     out.push((format!("{}.running_mean", torch.1), mean));
@@ -179,8 +187,10 @@ pub fn import(dir: &Path) -> Result<Imported> {
     let mut metadata = HashMap::new();
     metadata.insert(META_FORMAT.to_string(), FORMAT_NAME.to_string());
     metadata.insert(META_STRIDE_LAYOUT.to_string(), serde_json::to_value(layout)?.as_str().unwrap_or("v1").to_string());
-    let norm = if model.generated_by.to_lowercase().contains("keras") { Normalization::Caffe } else { Normalization::Torch };
-    metadata.insert(META_NORMALIZATION.to_string(), serde_json::to_value(norm)?.as_str().unwrap_or("caffe").to_string());
+    let norm =
+        if model.generated_by.to_lowercase().contains("keras") { Normalization::Caffe } else { Normalization::Torch };
+    metadata
+        .insert(META_NORMALIZATION.to_string(), serde_json::to_value(norm)?.as_str().unwrap_or("caffe").to_string());
     metadata.insert("source".to_string(), format!("TF.js layers model ({})", model.generated_by));
     Ok(Imported { tensors: out, metadata, keras_arrays: a.used.len(), shard_bytes })
 }

@@ -20,7 +20,8 @@ pub struct WeightFile {
 impl WeightFile {
     pub fn read(path: &Path) -> Result<Self> {
         let bytes = std::fs::read(path).with_context(|| format!("reading weights {}", path.display()))?;
-        let st = SafeTensors::deserialize(&bytes).with_context(|| format!("{} is not a safetensors file", path.display()))?;
+        let st = SafeTensors::deserialize(&bytes)
+            .with_context(|| format!("{} is not a safetensors file", path.display()))?;
         let (_, meta) = SafeTensors::read_metadata(&bytes)?;
         let mut tensors = Vec::with_capacity(st.len());
         for (name, view) in st.tensors() {
@@ -99,7 +100,10 @@ pub fn load_into(vs: &VarStore, file: &WeightFile) -> Result<LoadReport> {
     let heads_total = vars.keys().filter(|k| is_head(k)).count();
     let heads_missing = missing.len();
     if heads_missing != 0 && heads_missing != heads_total {
-        bail!("weight file has {} of {heads_total} attention/fusion tensors; expected all or none", heads_total - heads_missing);
+        bail!(
+            "weight file has {} of {heads_total} attention/fusion tensors; expected all or none",
+            heads_total - heads_missing
+        );
     }
     Ok(LoadReport { backbone_tensors: seen.len() - (heads_total - heads_missing), heads_from_file: heads_missing == 0 })
 }

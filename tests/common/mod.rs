@@ -28,15 +28,25 @@ pub fn imagenet_model() -> Model {
     Model::load(&weights(), ModelConfig::default(), tch::Device::Cpu, DType::F32).expect("loading weights").0
 }
 
-pub const PHOTOS: [&str; 9] =
-    ["dog.jpg", "eagle.jpg", "giraffe.jpg", "horses.jpg", "kite.jpg", "person.jpg", "scream.jpg", "tokyo_db.png", "tokyo_query.jpg"];
+pub const PHOTOS: [&str; 9] = [
+    "dog.jpg",
+    "eagle.jpg",
+    "giraffe.jpg",
+    "horses.jpg",
+    "kite.jpg",
+    "person.jpg",
+    "scream.jpg",
+    "tokyo_db.png",
+    "tokyo_query.jpg",
+];
 
 pub fn photo_inputs(model: &Model) -> Vec<tch::Tensor> {
     PHOTOS
         .iter()
         .map(|p| {
             let bytes = std::fs::read(data(&format!("photos/{p}"))).expect("reading photo");
-            loopd::model::preprocess::prepare(&bytes, &Default::default(), &model.config.preprocess).expect("photo decodes")
+            loopd::model::preprocess::prepare(&bytes, &Default::default(), &model.config.preprocess)
+                .expect("photo decodes")
         })
         .collect()
 }
