@@ -27,9 +27,14 @@ impl Gcm {
         // ceil_mode keeps a 1-pixel map alive at small inputs instead of failing.
         let mx = x.max_pool2d([2, 2], [2, 2], [0, 0], [1, 1], true);
         let av = x.avg_pool2d([2, 2], [2, 2], [0, 0], true, false, None::<i64>);
-        let (n, c, h, w) = mx.size4().expect("4-d feature map");
-        // [N, C, 2, H, W] -> [N, 2C, H, W]: channel c's max map then its mean map.
-        Tensor::stack(&[mx, av], 2).reshape([n, 2 * c, h, w]).apply(&self.conv)
+        // The group conv over interleaved [max_c, avg_c] pairs equals two depthwise convs
+        // summed; that skips materialising the 2C-channel stack (a large copy on CPU).
+        let c = mx.size()[1];
+        let w = &self.conv.ws;
+        let depthwise = |input: &Tensor, tap: i64, bias: Option<&Tensor>| {
+            input.conv2d(&w.narrow(1, tap, 1), bias, [1, 1], [1, 1], [1, 1], c)
+        };
+        depthwise(&mx, 0, self.conv.bs.as_ref()) + depthwise(&av, 1, None)
     }
 }
 
