@@ -27,8 +27,8 @@ fn main() -> anyhow::Result<()> {
     model.randomize(0, false);
     let threads = tch::get_num_threads();
     println!("device {} dtype {:?} threads {threads} input 224x224", device_name(device), dtype);
-    println!("| batch | backbone img/s | full img/s | full / backbone time | attention+fusion cost |");
-    println!("|------:|---------------:|-----------:|---------------------:|----------------------:|");
+    println!("| batch | backbone img/s | full img/s | full / backbone time | attention cost | fusion cost | attention+fusion cost |");
+    println!("|------:|---------------:|-----------:|---------------------:|---------------:|------------:|----------------------:|");
     for &b in &batches {
         let inputs: Vec<Tensor> =
             (0..b).map(|_| Tensor::randn([3, 224, 224], (Kind::Float, tch::Device::Cpu)) * 50.0).collect();
@@ -38,18 +38,31 @@ fn main() -> anyhow::Result<()> {
             assert_eq!(d.size()[0], b);
             Ok(t.elapsed().as_secs_f64())
         };
-        run(Variant::BACKBONE)?; // warm-up: allocator, cuDNN algorithm choice
-        run(Variant::FULL)?;
-        let (mut tb, mut tf, mut n) = (0.0, 0.0, 0);
+        for v in Variant::ALL {
+            run(v)?; // warm-up: allocator, oneDNN/cuDNN algorithm choice
+        }
+        // Variant::ALL order: full, attention, fusion, backbone. Interleaved so drift hits all alike.
+        let mut total = [0.0f64; 4];
+        let mut n = 0;
         let start = Instant::now();
-        // Alternate the two so drift on a noisy machine hits both alike.
         while n < 2 || (start.elapsed() < budget && n < 200) {
-            tb += run(Variant::BACKBONE)?;
-            tf += run(Variant::FULL)?;
+            for (i, v) in Variant::ALL.iter().enumerate() {
+                total[i] += run(*v)?;
+            }
             n += 1;
         }
-        let (ib, ifu) = (b as f64 * n as f64 / tb, b as f64 * n as f64 / tf);
-        println!("| {b:>5} | {ib:>14.1} | {ifu:>10.1} | {:>20.3} | {:>20.1}% |", tf / tb, (tf / tb - 1.0) * 100.0);
+        let [full, att, fus, plain] = total;
+        let rate = |t: f64| b as f64 * n as f64 / t;
+        let cost = |t: f64| (t / plain - 1.0) * 100.0;
+        println!(
+            "| {b:>5} | {:>14.1} | {:>10.1} | {:>20.3} | {:>13.1}% | {:>10.1}% | {:>20.1}% |",
+            rate(plain),
+            rate(full),
+            full / plain,
+            cost(att),
+            cost(fus),
+            cost(full)
+        );
     }
     Ok(())
 }
