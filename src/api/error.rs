@@ -8,8 +8,6 @@ use axum::Json;
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
     #[error("{0}")]
-    BadImage(#[from] ImageError),
-    #[error("{0}")]
     Engine(#[from] EngineError),
     #[error("{0}")]
     BadRequest(String),
@@ -18,10 +16,11 @@ pub enum ApiError {
 impl ApiError {
     pub fn status(&self) -> StatusCode {
         match self {
-            ApiError::BadImage(ImageError::TooManyBytes { .. }) => StatusCode::PAYLOAD_TOO_LARGE,
-            ApiError::BadImage(_) | ApiError::BadRequest(_) => StatusCode::BAD_REQUEST,
+            ApiError::Engine(EngineError::Image(ImageError::TooManyBytes { .. })) => StatusCode::PAYLOAD_TOO_LARGE,
+            ApiError::Engine(EngineError::Image(_)) | ApiError::BadRequest(_) => StatusCode::BAD_REQUEST,
             ApiError::Engine(EngineError::Overloaded(_)) => StatusCode::TOO_MANY_REQUESTS,
             ApiError::Engine(EngineError::Stopped) => StatusCode::SERVICE_UNAVAILABLE,
+            ApiError::Engine(EngineError::DeadlineExceeded) => StatusCode::GATEWAY_TIMEOUT,
             ApiError::Engine(EngineError::Inference(_)) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }

@@ -2,9 +2,10 @@
 use super::error::ApiError;
 use crate::engine::Engine;
 use crate::model::network::{Variant, DESCRIPTOR_DIM};
-use crate::model::preprocess::{prepare, ImageLimits};
 use axum::body::Bytes;
 use axum::extract::{DefaultBodyLimit, Query, State};
+use axum::http::header;
+use axum::response::IntoResponse;
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
@@ -12,20 +13,23 @@ use std::sync::Arc;
 
 pub struct AppState {
     pub engine: Engine,
-    pub limits: ImageLimits,
-    pub device: String,
 }
 
 pub fn router(state: Arc<AppState>) -> Router {
     // Slightly above the image limit so an oversized image gets our 413 message, not a bare one.
-    let body_limit = state.limits.max_bytes + 1024;
+    let body_limit = state.engine.info().limits.max_bytes + 1024;
     Router::new()
         .route("/healthz", get(|| async { "ok" }))
         .route("/readyz", get(|| async { "ready" }))
+        .route("/metrics", get(metrics))
         .route("/v1/info", get(info))
         .route("/v1/embed", post(embed))
         .layer(DefaultBodyLimit::max(body_limit))
         .with_state(state)
+}
+
+async fn metrics(State(s): State<Arc<AppState>>) -> impl IntoResponse {
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], s.engine.metrics().render_prometheus())
 }
 
 #[derive(Serialize)]
@@ -33,14 +37,19 @@ struct Info {
     descriptor_id: String,
     dim: i64,
     device: String,
+    dtype: String,
+    max_batch: usize,
     version: &'static str,
 }
 
 async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
+    let i = s.engine.info();
     Json(Info {
-        descriptor_id: s.engine.descriptor_id.clone(),
+        descriptor_id: i.descriptor_id.clone(),
         dim: DESCRIPTOR_DIM,
-        device: s.device.clone(),
+        device: i.device.clone(),
+        dtype: i.dtype.clone(),
+        max_batch: s.engine.config().max_batch,
         version: env!("CARGO_PKG_VERSION"),
     })
 }
@@ -69,11 +78,7 @@ async fn embed(
     Query(q): Query<EmbedQuery>,
     body: Bytes,
 ) -> Result<Json<EmbedResponse>, ApiError> {
-    let (limits, pre) = (s.limits, s.engine.preprocess.clone());
-    // Decoding runs on the blocking pool, never on the model thread.
-    let input = tokio::task::spawn_blocking(move || prepare(&body, &limits, &pre))
-        .await
-        .map_err(|e| ApiError::BadRequest(format!("decoder failed: {e}")))??;
-    let descriptor = s.engine.embed(input, Variant { attention: q.attention, fusion: q.fusion }).await?;
-    Ok(Json(EmbedResponse { descriptor_id: s.engine.descriptor_id.clone(), descriptor }))
+    let variant = Variant { attention: q.attention, fusion: q.fusion };
+    let descriptor = s.engine.embed_image(body, variant, None).await?;
+    Ok(Json(EmbedResponse { descriptor_id: s.engine.info().descriptor_id.clone(), descriptor }))
 }

@@ -1,7 +1,6 @@
 use super::ModelArgs;
 use crate::api::http::{router, AppState};
 use crate::engine::{Engine, EngineConfig};
-use crate::model::device::device_name;
 use crate::model::preprocess::ImageLimits;
 use anyhow::{Context, Result};
 use clap::Args;
@@ -29,23 +28,26 @@ pub struct ServeArgs {
     pub max_image_bytes: usize,
     #[arg(long, env = "LOOPD_MAX_IMAGE_PIXELS", default_value_t = 40_000_000)]
     pub max_image_pixels: u64,
+    /// Threads decoding images at once (default: number of cores).
+    #[arg(long, env = "LOOPD_DECODE_WORKERS")]
+    pub decode_workers: Option<usize>,
 }
 
 pub fn run(a: ServeArgs) -> Result<ExitCode> {
     std::fs::create_dir_all(&a.data_dir).with_context(|| format!("creating data dir {}", a.data_dir.display()))?;
     let db = sled::open(a.data_dir.join("db")).with_context(|| format!("opening sled in {}", a.data_dir.display()))?;
     let model = a.model.load()?;
-    let device = device_name(model.device);
-    let engine = Engine::start(
-        model,
-        EngineConfig {
-            max_batch: a.max_batch.max(1),
-            max_delay: Duration::from_millis(a.max_delay_ms),
-            queue_capacity: a.queue_capacity.max(1),
-        },
-    );
+    let defaults = EngineConfig::default();
+    let cfg = EngineConfig {
+        max_batch: a.max_batch,
+        max_delay: Duration::from_millis(a.max_delay_ms),
+        queue_capacity: a.queue_capacity,
+        decode_workers: a.decode_workers.unwrap_or(defaults.decode_workers),
+        warm_up: true,
+    };
     let limits = ImageLimits { max_bytes: a.max_image_bytes, max_pixels: a.max_image_pixels, ..Default::default() };
-    let state = Arc::new(AppState { engine, limits, device });
+    let engine = Engine::start(model, cfg, limits)?;
+    let state = Arc::new(AppState { engine });
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
         let listener =

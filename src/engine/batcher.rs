@@ -1,106 +1,79 @@
-//! Dynamic batching: take up to `max_batch` queued inputs, or what arrived within
-//! `max_delay` of the first, and run them as one forward pass on the model thread.
+//! The model thread: take up to `max_batch` queued inputs, or what arrived within
+//! `max_delay` of the first, and run them as one forward pass (Triton-style dynamic batching).
+use super::metrics::EngineMetrics;
+use super::{EngineConfig, EngineError};
 use crate::model::network::Variant;
 use crate::model::{rows, Model};
-use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender, TrySendError};
-use std::time::{Duration, Instant};
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::time::Instant;
 use tch::Tensor;
 use tokio::sync::oneshot;
 
-#[derive(Clone, Debug)]
-pub struct EngineConfig {
-    pub max_batch: usize,
-    pub max_delay: Duration,
-    /// Requests waiting for the model; beyond this a request fails at once (overload).
-    pub queue_capacity: usize,
+pub(super) struct Job {
+    pub input: Tensor,
+    pub variant: Variant,
+    pub deadline: Option<Instant>,
+    pub admitted: Instant,
+    pub reply: oneshot::Sender<Result<Vec<f32>, EngineError>>,
 }
 
-impl Default for EngineConfig {
-    fn default() -> Self {
-        Self { max_batch: 32, max_delay: Duration::from_millis(5), queue_capacity: 256 }
-    }
-}
-
-#[derive(Debug, thiserror::Error, Clone, PartialEq, Eq)]
-pub enum EngineError {
-    #[error("inference queue is full ({0} requests waiting); retry later")]
-    Overloaded(usize),
-    #[error("inference engine has stopped")]
-    Stopped,
-    #[error("inference failed: {0}")]
-    Inference(String),
-}
-
-struct Job {
-    input: Tensor,
-    variant: Variant,
-    reply: oneshot::Sender<Result<Vec<f32>, EngineError>>,
-}
-
-/// Cheap to clone; every clone feeds the same model thread.
-#[derive(Clone)]
-pub struct Engine {
-    tx: SyncSender<Job>,
-    capacity: usize,
-    pub descriptor_id: String,
-    pub preprocess: crate::model::config::Preprocess,
-}
-
-impl Engine {
-    /// Moves the model onto its own thread. The thread ends when every `Engine` clone is dropped.
-    pub fn start(model: Model, cfg: EngineConfig) -> Self {
-        let (tx, rx) = mpsc::sync_channel(cfg.queue_capacity);
-        let descriptor_id = model.config.descriptor_id();
-        let preprocess = model.config.preprocess.clone();
-        let capacity = cfg.queue_capacity;
-        std::thread::Builder::new()
-            .name("loopd-model".into())
-            .spawn(move || run(model, rx, cfg))
-            .expect("spawning the model thread");
-        Self { tx, capacity, descriptor_id, preprocess }
-    }
-
-    /// Queues one preprocessed input ([3, H, W]) and waits for its unit descriptor.
-    pub async fn embed(&self, input: Tensor, variant: Variant) -> Result<Vec<f32>, EngineError> {
-        let (reply, rx) = oneshot::channel();
-        self.tx.try_send(Job { input, variant, reply }).map_err(|e| match e {
-            TrySendError::Full(_) => EngineError::Overloaded(self.capacity),
-            TrySendError::Disconnected(_) => EngineError::Stopped,
-        })?;
-        rx.await.map_err(|_| EngineError::Stopped)?
-    }
-}
-
-fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig) {
+pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: std::sync::Arc<EngineMetrics>) {
     while let Ok(first) = rx.recv() {
-        let deadline = Instant::now() + cfg.max_delay;
+        let window_end = Instant::now() + cfg.max_delay;
         let mut jobs = vec![first];
         while jobs.len() < cfg.max_batch {
-            match rx.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
+            match rx.recv_timeout(window_end.saturating_duration_since(Instant::now())) {
                 Ok(j) => jobs.push(j),
                 Err(RecvTimeoutError::Timeout) | Err(RecvTimeoutError::Disconnected) => break,
             }
         }
-        // A caller that gave up costs no forward pass.
-        jobs.retain(|j| !j.reply.is_closed());
+        let now = Instant::now();
+        // A caller that gave up, or whose deadline passed, costs no forward pass.
+        let mut live = Vec::with_capacity(jobs.len());
+        for j in jobs {
+            if j.reply.is_closed() {
+                metrics.cancelled.fetch_add(1, Relaxed);
+            } else if j.deadline.is_some_and(|d| d <= now) {
+                metrics.cancelled.fetch_add(1, Relaxed);
+                let _ = j.reply.send(Err(EngineError::DeadlineExceeded));
+            } else {
+                live.push(j);
+            }
+        }
+        let mut jobs = live;
         while !jobs.is_empty() {
-            // One forward pass per (size, variant) group.
+            // One forward pass per (input size, variant): inputs must stack.
             let (size, variant) = (jobs[0].input.size(), jobs[0].variant);
             let (group, rest): (Vec<Job>, Vec<Job>) =
                 jobs.into_iter().partition(|j| j.input.size() == size && j.variant == variant);
             jobs = rest;
-            let inputs: Vec<Tensor> = group.iter().map(|j| j.input.shallow_clone()).collect();
-            match model.descriptors(&inputs, variant).and_then(|d| rows(&d)) {
-                Ok(descs) => {
-                    for (job, d) in group.into_iter().zip(descs) {
-                        let _ = job.reply.send(Ok(d));
-                    }
-                }
-                Err(e) => {
-                    for job in group {
-                        let _ = job.reply.send(Err(EngineError::Inference(format!("{e:#}"))));
-                    }
-                }
+            forward(&model, group, variant, &metrics);
+        }
+    }
+}
+
+fn forward(model: &Model, group: Vec<Job>, variant: Variant, metrics: &EngineMetrics) {
+    let start = Instant::now();
+    for j in &group {
+        metrics.queue_wait.observe(start.duration_since(j.admitted).as_secs_f64());
+    }
+    let inputs: Vec<Tensor> = group.iter().map(|j| j.input.shallow_clone()).collect();
+    let result = model.descriptors(&inputs, variant).and_then(|d| rows(&d));
+    metrics.forward_seconds.observe(start.elapsed().as_secs_f64());
+    metrics.batch_size.observe(group.len() as f64);
+    match result {
+        Ok(descs) => {
+            metrics.images.fetch_add(group.len() as u64, Relaxed);
+            for (job, d) in group.into_iter().zip(descs) {
+                let _ = job.reply.send(Ok(d));
+            }
+        }
+        Err(e) => {
+            metrics.failed.fetch_add(group.len() as u64, Relaxed);
+            tracing::error!(error = %e, batch = group.len(), "forward pass failed");
+            for job in group {
+                let _ = job.reply.send(Err(EngineError::Inference(format!("{e:#}"))));
             }
         }
     }

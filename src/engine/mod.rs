@@ -1,4 +1,192 @@
-//! The inference engine: one thread owns the model; requests queue up and run in batches.
+//! The inference engine: every API's frames go through it to the one model thread.
+//!
+//! `Engine` (this file) admits requests against a bound and decodes them on blocking workers;
+//! `batcher` runs on the model thread and turns the queue into forward passes; `metrics` counts.
 mod batcher;
+pub mod metrics;
 
-pub use batcher::{Engine, EngineConfig, EngineError};
+use crate::model::config::Preprocess;
+use crate::model::device::device_name;
+use crate::model::network::Variant;
+use crate::model::preprocess::{prepare, ImageError, ImageLimits};
+use crate::model::Model;
+use batcher::Job;
+use metrics::EngineMetrics;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::mpsc::{self, SyncSender, TrySendError};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tch::Tensor;
+use tokio::sync::{oneshot, Semaphore};
+
+#[derive(Clone, Debug)]
+pub struct EngineConfig {
+    /// Most images in one forward pass.
+    pub max_batch: usize,
+    /// Longest a request waits for others to join its batch.
+    pub max_delay: Duration,
+    /// Requests admitted at once (decoding, queued or running); beyond it requests fail at once.
+    pub queue_capacity: usize,
+    /// Threads decoding and resizing images at once.
+    pub decode_workers: usize,
+    /// Run a forward pass at start so the first request does not pay for allocation/autotuning.
+    pub warm_up: bool,
+}
+
+impl Default for EngineConfig {
+    fn default() -> Self {
+        Self {
+            max_batch: 32,
+            max_delay: Duration::from_millis(5),
+            queue_capacity: 256,
+            decode_workers: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2),
+            warm_up: true,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error, Clone, PartialEq, Eq)]
+pub enum EngineError {
+    #[error("inference queue is full ({0} requests admitted); retry later")]
+    Overloaded(usize),
+    #[error("inference engine has stopped")]
+    Stopped,
+    #[error("deadline passed before the frame was processed")]
+    DeadlineExceeded,
+    #[error("{0}")]
+    Image(#[from] ImageError),
+    #[error("inference failed: {0}")]
+    Inference(String),
+}
+
+/// Cheap to clone; every clone feeds the same model thread, which ends when the last clone drops.
+#[derive(Clone)]
+pub struct Engine {
+    tx: SyncSender<Job>,
+    cfg: EngineConfig,
+    decode: Arc<Semaphore>,
+    metrics: Arc<EngineMetrics>,
+    info: Arc<EngineInfo>,
+}
+
+/// What the engine computes, for clients and stored sessions.
+#[derive(Debug, Clone)]
+pub struct EngineInfo {
+    pub descriptor_id: String,
+    pub preprocess: Preprocess,
+    pub limits: ImageLimits,
+    pub device: String,
+    pub dtype: String,
+}
+
+/// Counts a request as admitted until it is answered or dropped.
+struct Admission(Arc<EngineMetrics>);
+
+impl Drop for Admission {
+    fn drop(&mut self) {
+        self.0.queued.fetch_sub(1, Relaxed);
+    }
+}
+
+impl Engine {
+    /// Moves the model onto its own thread (after the warm-up, if asked for).
+    pub fn start(model: Model, cfg: EngineConfig, limits: ImageLimits) -> anyhow::Result<Self> {
+        let cfg = EngineConfig { max_batch: cfg.max_batch.max(1), queue_capacity: cfg.queue_capacity.max(1), ..cfg };
+        let info = Arc::new(EngineInfo {
+            descriptor_id: model.config.descriptor_id(),
+            preprocess: model.config.preprocess.clone(),
+            limits,
+            device: device_name(model.device),
+            dtype: format!("{:?}", model.dtype).to_lowercase(),
+        });
+        if cfg.warm_up {
+            let t = Instant::now();
+            let p = &model.config.preprocess;
+            let input = Tensor::zeros([3, p.height as i64, p.width as i64], tch::kind::FLOAT_CPU);
+            for n in [1, cfg.max_batch] {
+                let batch: Vec<Tensor> = (0..n).map(|_| input.shallow_clone()).collect();
+                let _ = model.descriptors(&batch, Variant::FULL)?;
+            }
+            tracing::info!(elapsed_ms = t.elapsed().as_millis() as u64, device = %info.device, "engine warmed up");
+        }
+        // The channel never fills before admission refuses: admission bounds it.
+        let (tx, rx) = mpsc::sync_channel(cfg.queue_capacity);
+        let metrics = Arc::new(EngineMetrics::default());
+        let (m, c) = (metrics.clone(), cfg.clone());
+        std::thread::Builder::new().name("loopd-model".into()).spawn(move || batcher::run(model, rx, c, m))?;
+        let decode = Arc::new(Semaphore::new(cfg.decode_workers.max(1)));
+        Ok(Self { tx, cfg, decode, metrics, info })
+    }
+
+    pub fn info(&self) -> &EngineInfo {
+        &self.info
+    }
+
+    pub fn metrics(&self) -> &EngineMetrics {
+        &self.metrics
+    }
+
+    pub fn config(&self) -> &EngineConfig {
+        &self.cfg
+    }
+
+    fn admit(&self) -> Result<Admission, EngineError> {
+        let before = self.metrics.queued.fetch_add(1, Relaxed);
+        let admission = Admission(self.metrics.clone());
+        if before as usize >= self.cfg.queue_capacity {
+            self.metrics.rejected_overload.fetch_add(1, Relaxed);
+            return Err(EngineError::Overloaded(self.cfg.queue_capacity));
+        }
+        Ok(admission)
+    }
+
+    /// Decodes `bytes` on a worker and returns the frame's unit descriptor.
+    /// Dropping the future (or passing `deadline`) before the forward pass costs no forward pass.
+    pub async fn embed_image(
+        &self,
+        bytes: bytes::Bytes,
+        variant: Variant,
+        deadline: Option<Instant>,
+    ) -> Result<Vec<f32>, EngineError> {
+        let admission = self.admit()?;
+        let admitted = Instant::now();
+        let input = {
+            let _permit = self.decode.acquire().await.map_err(|_| EngineError::Stopped)?;
+            let (limits, pre) = (self.info.limits, self.info.preprocess.clone());
+            tokio::task::spawn_blocking(move || prepare(&bytes, &limits, &pre))
+                .await
+                .map_err(|e| EngineError::Inference(format!("decoder worker failed: {e}")))??
+        };
+        self.submit(input, variant, deadline, admitted, admission).await
+    }
+
+    /// Embeds an already preprocessed input ([3, H, W], see `model::preprocess::to_input`).
+    pub async fn embed_input(
+        &self,
+        input: Tensor,
+        variant: Variant,
+        deadline: Option<Instant>,
+    ) -> Result<Vec<f32>, EngineError> {
+        let admission = self.admit()?;
+        self.submit(input, variant, deadline, Instant::now(), admission).await
+    }
+
+    async fn submit(
+        &self,
+        input: Tensor,
+        variant: Variant,
+        deadline: Option<Instant>,
+        admitted: Instant,
+        admission: Admission,
+    ) -> Result<Vec<f32>, EngineError> {
+        let (reply, rx) = oneshot::channel();
+        let job = Job { input, variant, deadline, admitted, reply };
+        self.tx.try_send(job).map_err(|e| match e {
+            TrySendError::Full(_) => EngineError::Overloaded(self.cfg.queue_capacity),
+            TrySendError::Disconnected(_) => EngineError::Stopped,
+        })?;
+        let result = rx.await.map_err(|_| EngineError::Stopped)?;
+        drop(admission);
+        result
+    }
+}

@@ -24,7 +24,7 @@ impl Default for ImageLimits {
     }
 }
 
-#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+#[derive(Debug, Clone, thiserror::Error, PartialEq, Eq)]
 pub enum ImageError {
     #[error("image is empty (0 bytes)")]
     Empty,

@@ -1,0 +1,148 @@
+//! The batching engine on real frames: own results, batching, overload, cancellation.
+mod common;
+use common::*;
+use loopd::engine::{Engine, EngineConfig, EngineError};
+use loopd::model::config::ModelConfig;
+use loopd::model::device::DType;
+use loopd::model::network::Variant;
+use loopd::model::preprocess::ImageLimits;
+use loopd::model::Model;
+use std::time::{Duration, Instant};
+
+fn corridor_frames(n: usize) -> Vec<bytes::Bytes> {
+    (0..n).map(|i| std::fs::read(data(&format!("corridor/query/{i:07}.jpg"))).unwrap().into()).collect()
+}
+
+fn cos(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// A small random-weight model: the flood and cancel tests are about queueing, not accuracy.
+fn small_engine(cfg: EngineConfig) -> Engine {
+    let mut mc = ModelConfig::default();
+    mc.preprocess.width = 64;
+    mc.preprocess.height = 64;
+    let model = Model::new(mc, tch::Device::Cpu, DType::F32).unwrap();
+    Engine::start(model, cfg, ImageLimits::default()).unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn sixty_four_concurrent_callers_each_get_their_own_descriptor() {
+    let model = imagenet_model();
+    model.randomize(3, true); // non-identity heads: the whole network is exercised
+    let cfg = EngineConfig { max_batch: 16, max_delay: Duration::from_millis(20), ..Default::default() };
+    let engine = Engine::start(model, cfg, ImageLimits::default()).unwrap();
+    let frames = corridor_frames(64);
+    // Each frame alone: one request at a time, so every forward pass has batch size 1.
+    let mut alone = Vec::new();
+    for f in &frames {
+        alone.push(engine.embed_image(f.clone(), Variant::FULL, None).await.unwrap());
+    }
+    assert_eq!(engine.metrics().batch_size.max_bucket(), 1.0);
+    let tasks: Vec<_> = frames
+        .iter()
+        .cloned()
+        .map(|f| {
+            let e = engine.clone();
+            tokio::spawn(async move { e.embed_image(f, Variant::FULL, None).await })
+        })
+        .collect();
+    for (i, t) in tasks.into_iter().enumerate() {
+        let d = t.await.unwrap().unwrap();
+        let own = cos(&d, &alone[i]);
+        assert!(own >= 0.9999, "caller {i}: cosine to its own frame alone is {own}");
+        let best = (0..alone.len()).max_by(|&a, &b| cos(&d, &alone[a]).total_cmp(&cos(&d, &alone[b]))).unwrap();
+        assert_eq!(best, i, "caller {i} got a descriptor closest to frame {best}");
+    }
+    assert!(engine.metrics().batch_size.max_bucket() > 1.0, "no batch larger than 1 was formed");
+    assert_eq!(engine.metrics().images.load(std::sync::atomic::Ordering::Relaxed), 128);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_flooded_queue_refuses_at_once_then_recovers() {
+    let engine = small_engine(EngineConfig {
+        max_batch: 2,
+        max_delay: Duration::from_millis(1),
+        queue_capacity: 4,
+        warm_up: false,
+        ..Default::default()
+    });
+    let frames = corridor_frames(40);
+    let tasks: Vec<_> = frames
+        .into_iter()
+        .map(|f| {
+            let e = engine.clone();
+            tokio::spawn(async move {
+                let t = Instant::now();
+                (e.embed_image(f, Variant::FULL, None).await, t.elapsed())
+            })
+        })
+        .collect();
+    let (mut ok, mut refused) = (0, 0);
+    for t in tasks {
+        match t.await.unwrap() {
+            (Ok(d), _) => {
+                assert_eq!(d.len(), 2048);
+                ok += 1
+            }
+            (Err(EngineError::Overloaded(4)), waited) => {
+                assert!(waited < Duration::from_millis(50), "refusal took {waited:?}: it must be immediate");
+                refused += 1
+            }
+            (Err(e), _) => panic!("unexpected error {e}"),
+        }
+    }
+    assert!(refused > 0, "40 requests into a queue of 4 were all accepted");
+    assert!(ok >= 4, "only {ok} served");
+    let m = engine.metrics();
+    assert_eq!(m.rejected_overload.load(std::sync::atomic::Ordering::Relaxed), refused);
+    assert_eq!(m.queued.load(std::sync::atomic::Ordering::Relaxed), 0, "admissions leaked");
+    // Recovered: a later request is served normally.
+    let f = corridor_frames(1).pop().unwrap();
+    assert_eq!(engine.embed_image(f, Variant::FULL, None).await.unwrap().len(), 2048);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_cancelled_request_costs_no_forward_pass() {
+    use std::sync::atomic::Ordering::Relaxed;
+    // A long batching window holds both requests in the queue while one is given up.
+    let engine = small_engine(EngineConfig {
+        max_batch: 8,
+        max_delay: Duration::from_millis(600),
+        warm_up: false,
+        ..Default::default()
+    });
+    let mut frames = corridor_frames(3);
+    let kept = {
+        let e = engine.clone();
+        let f = frames.remove(0);
+        tokio::spawn(async move { e.embed_image(f, Variant::FULL, None).await })
+    };
+    // Dropped by its caller (timeout) while waiting in the batch window.
+    let given_up =
+        tokio::time::timeout(Duration::from_millis(100), engine.embed_image(frames.remove(0), Variant::FULL, None))
+            .await;
+    assert!(given_up.is_err(), "the request should still have been waiting");
+    // A deadline that passes inside the window is answered without a forward pass.
+    let expired =
+        engine.embed_image(frames.remove(0), Variant::FULL, Some(Instant::now() + Duration::from_millis(150)));
+    assert_eq!(expired.await, Err(EngineError::DeadlineExceeded));
+    assert_eq!(kept.await.unwrap().unwrap().len(), 2048);
+    let m = engine.metrics();
+    assert_eq!(m.cancelled.load(Relaxed), 2);
+    assert_eq!(m.images.load(Relaxed), 1, "only the kept request was computed");
+    assert_eq!(m.batch_size.count(), 1);
+    assert_eq!(m.queued.load(Relaxed), 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_images_are_refused_by_the_engine_and_it_keeps_serving() {
+    let engine = small_engine(EngineConfig { warm_up: false, ..Default::default() });
+    let err = engine.embed_image(bytes::Bytes::from_static(b"not an image"), Variant::FULL, None).await;
+    assert!(matches!(err, Err(EngineError::Image(_))), "{err:?}");
+    let f = corridor_frames(1).pop().unwrap();
+    assert!(engine.embed_image(f, Variant::FULL, None).await.is_ok());
+    let text = engine.metrics().render_prometheus();
+    assert!(text.contains("loopd_engine_images_total 1"), "{text}");
+    assert!(text.contains("loopd_engine_batch_size_bucket{le=\"1\"} 1"), "{text}");
+}
