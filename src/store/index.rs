@@ -1,0 +1,318 @@
+//! One session's descriptors, contiguous in memory, searched exactly (cosine = dot of unit rows).
+use super::kernels::{dots_f16, dots_f32};
+use super::query::{LoopQuery, Match, Pose, Scope};
+use serde::{Deserialize, Serialize};
+use std::collections::{BinaryHeap, HashMap};
+
+/// How a session keeps its descriptors (on disk and in memory).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Storage {
+    /// Half the bytes, twice the search speed; cosine error ~1e-3.
+    #[default]
+    F16,
+    F32,
+}
+
+impl Storage {
+    pub fn bytes_per_value(self) -> usize {
+        match self {
+            Storage::F16 => 2,
+            Storage::F32 => 4,
+        }
+    }
+}
+
+enum Rows {
+    F16(Vec<u16>),
+    F32(Vec<f32>),
+}
+
+#[derive(Clone, Debug)]
+pub struct FrameMeta {
+    pub frame_id: u64,
+    pub robot: u32,
+    pub timestamp: f64,
+    pub pose: Option<Pose>,
+}
+
+pub struct SessionIndex {
+    dim: usize,
+    rows: Rows,
+    frames: Vec<FrameMeta>,
+    robots: Vec<String>,
+    robot_ids: HashMap<String, u32>,
+    /// Row of each frame id.
+    by_frame: HashMap<u64, usize>,
+    /// Frame ids of each robot, ascending (its "last N frames" are the N highest ids).
+    by_robot: Vec<Vec<u64>>,
+}
+
+/// Rows searched per chunk: big enough to amortise, small enough for threads to share work.
+const CHUNK_ROWS: usize = 4096;
+
+impl SessionIndex {
+    pub fn new(dim: usize, storage: Storage) -> Self {
+        Self {
+            dim,
+            rows: match storage {
+                Storage::F16 => Rows::F16(Vec::new()),
+                Storage::F32 => Rows::F32(Vec::new()),
+            },
+            frames: Vec::new(),
+            robots: Vec::new(),
+            robot_ids: HashMap::new(),
+            by_frame: HashMap::new(),
+            by_robot: Vec::new(),
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.frames.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+
+    pub fn contains(&self, frame_id: u64) -> bool {
+        self.by_frame.contains_key(&frame_id)
+    }
+
+    pub fn robots(&self) -> &[String] {
+        &self.robots
+    }
+
+    pub fn max_frame_id(&self) -> Option<u64> {
+        self.frames.iter().map(|f| f.frame_id).max()
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        let rows = match &self.rows {
+            Rows::F16(v) => v.capacity() * 2,
+            Rows::F32(v) => v.capacity() * 4,
+        };
+        rows + self.frames.capacity() * std::mem::size_of::<FrameMeta>()
+    }
+
+    /// Appends one unit descriptor (the caller has checked dim and uniqueness).
+    pub fn push(&mut self, frame_id: u64, robot_id: &str, timestamp: f64, pose: Option<Pose>, descriptor: &[f32]) {
+        debug_assert_eq!(descriptor.len(), self.dim);
+        let robot = match self.robot_ids.get(robot_id) {
+            Some(&r) => r,
+            None => {
+                let r = self.robots.len() as u32;
+                self.robots.push(robot_id.to_string());
+                self.robot_ids.insert(robot_id.to_string(), r);
+                self.by_robot.push(Vec::new());
+                r
+            }
+        };
+        match &mut self.rows {
+            Rows::F16(v) => v.extend(descriptor.iter().map(|&x| half::f16::from_f32(x).to_bits())),
+            Rows::F32(v) => v.extend_from_slice(descriptor),
+        }
+        let row = self.frames.len();
+        self.frames.push(FrameMeta { frame_id, robot, timestamp, pose });
+        self.by_frame.insert(frame_id, row);
+        let ids = &mut self.by_robot[robot as usize];
+        match ids.last() {
+            Some(&last) if last > frame_id => {
+                let at = ids.partition_point(|&id| id < frame_id);
+                ids.insert(at, frame_id);
+            }
+            _ => ids.push(frame_id),
+        }
+    }
+
+    /// The stored descriptor of a frame, as f32.
+    pub fn descriptor(&self, frame_id: u64) -> Option<Vec<f32>> {
+        let row = *self.by_frame.get(&frame_id)?;
+        let range = row * self.dim..(row + 1) * self.dim;
+        Some(match &self.rows {
+            Rows::F16(v) => v[range].iter().map(|&b| half::f16::from_bits(b).to_f32()).collect(),
+            Rows::F32(v) => v[range].to_vec(),
+        })
+    }
+
+    pub fn frame(&self, frame_id: u64) -> Option<(&FrameMeta, &str)> {
+        let f = &self.frames[*self.by_frame.get(&frame_id)?];
+        Some((f, &self.robots[f.robot as usize]))
+    }
+
+    /// Top-k rows by dot product with `q` that pass the query's filters, best first.
+    pub fn search(&self, q: &[f32], opts: &LoopQuery, threads: usize) -> Vec<Match> {
+        let filter = Filter::new(self, opts);
+        let k = opts.k.min(super::query::MAX_K);
+        if k == 0 || self.frames.is_empty() {
+            return Vec::new();
+        }
+        let n = self.frames.len();
+        let chunks: Vec<(usize, usize)> = (0..n).step_by(CHUNK_ROWS).map(|s| (s, (s + CHUNK_ROWS).min(n))).collect();
+        let threads = threads.clamp(1, chunks.len());
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        let work = || {
+            let mut heap = TopK::new(k);
+            let mut scores = vec![0f32; CHUNK_ROWS];
+            loop {
+                let c = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let Some(&(s, e)) = chunks.get(c) else { break };
+                let out = &mut scores[..e - s];
+                match &self.rows {
+                    Rows::F16(v) => dots_f16(q, &v[s * self.dim..e * self.dim], out),
+                    Rows::F32(v) => dots_f32(q, &v[s * self.dim..e * self.dim], out),
+                }
+                for (i, &score) in out.iter().enumerate() {
+                    // Score first: the filter is only evaluated for would-be results.
+                    if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
+                        heap.push(score, s + i);
+                    }
+                }
+            }
+            heap
+        };
+        let mut heap = if threads == 1 {
+            work()
+        } else {
+            std::thread::scope(|sc| {
+                let handles: Vec<_> = (0..threads).map(|_| sc.spawn(work)).collect();
+                let mut merged = TopK::new(k);
+                for h in handles {
+                    for (score, row) in h.join().expect("search thread").into_vec() {
+                        merged.push(score, row);
+                    }
+                }
+                merged
+            })
+        };
+        heap.sorted()
+            .into_iter()
+            .map(|(score, row)| {
+                let f = &self.frames[row];
+                Match {
+                    frame_id: f.frame_id,
+                    score,
+                    robot_id: self.robots[f.robot as usize].clone(),
+                    timestamp: f.timestamp,
+                    pose: f.pose,
+                }
+            })
+            .collect()
+    }
+}
+
+/// The query's filters, resolved once to row-level tests.
+struct Filter<'a> {
+    index: &'a SessionIndex,
+    robot: Option<u32>,
+    scope: Scope,
+    /// The querying robot's frames with this id or higher are excluded.
+    exclude_from_id: Option<u64>,
+    exclude_after_time: Option<f64>,
+    time_range: Option<(f64, f64)>,
+    frame_id_range: Option<(u64, u64)>,
+}
+
+impl<'a> Filter<'a> {
+    fn new(index: &'a SessionIndex, q: &LoopQuery) -> Self {
+        let robot = q.robot_id.as_deref().and_then(|r| index.robot_ids.get(r).copied());
+        let own_ids = robot.map(|r| index.by_robot[r as usize].as_slice()).unwrap_or(&[]);
+        let exclude_from_id = (q.exclude_last_frames > 0 && !own_ids.is_empty())
+            .then(|| own_ids[own_ids.len().saturating_sub(q.exclude_last_frames)]);
+        let newest_own =
+            own_ids.iter().map(|id| index.frames[index.by_frame[id]].timestamp).fold(f64::NEG_INFINITY, f64::max);
+        let exclude_after_time = (q.exclude_last_seconds > 0.0 && robot.is_some())
+            .then(|| q.at_time.unwrap_or(newest_own) - q.exclude_last_seconds);
+        Self {
+            index,
+            robot,
+            scope: q.scope,
+            exclude_from_id,
+            exclude_after_time,
+            time_range: q.time_range,
+            frame_id_range: q.frame_id_range,
+        }
+    }
+
+    fn allows(&self, row: usize) -> bool {
+        let f = &self.index.frames[row];
+        let own = self.robot == Some(f.robot);
+        match self.scope {
+            Scope::All => {}
+            // An unknown querying robot has no own frames: same-robot matches nothing.
+            Scope::SameRobot if !own => return false,
+            Scope::OtherRobots if own => return false,
+            _ => {}
+        }
+        if own {
+            if self.exclude_from_id.is_some_and(|id| f.frame_id >= id) {
+                return false;
+            }
+            if self.exclude_after_time.is_some_and(|t| f.timestamp > t) {
+                return false;
+            }
+        }
+        if self.time_range.is_some_and(|(a, b)| f.timestamp < a || f.timestamp > b) {
+            return false;
+        }
+        if self.frame_id_range.is_some_and(|(a, b)| f.frame_id < a || f.frame_id > b) {
+            return false;
+        }
+        true
+    }
+}
+
+/// Bounded min-heap of (score, row); ties broken by the earlier row.
+struct TopK {
+    k: usize,
+    heap: BinaryHeap<std::cmp::Reverse<(Score, usize)>>,
+}
+
+#[derive(Clone, Copy)]
+struct Score(f32);
+impl PartialEq for Score {
+    fn eq(&self, o: &Self) -> bool {
+        self.cmp(o).is_eq()
+    }
+}
+impl Eq for Score {}
+impl PartialOrd for Score {
+    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(o))
+    }
+}
+impl Ord for Score {
+    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+        self.0.total_cmp(&o.0)
+    }
+}
+
+impl TopK {
+    fn new(k: usize) -> Self {
+        Self { k, heap: BinaryHeap::with_capacity(k + 1) }
+    }
+
+    fn would_take(&self, score: f32) -> bool {
+        self.heap.len() < self.k || self.heap.peek().is_some_and(|m| score > m.0 .0 .0)
+    }
+
+    fn push(&mut self, score: f32, row: usize) {
+        if !self.would_take(score) {
+            return;
+        }
+        self.heap.push(std::cmp::Reverse((Score(score), usize::MAX - row)));
+        if self.heap.len() > self.k {
+            self.heap.pop();
+        }
+    }
+
+    fn into_vec(self) -> Vec<(f32, usize)> {
+        self.heap.into_iter().map(|std::cmp::Reverse((s, r))| (s.0, usize::MAX - r)).collect()
+    }
+
+    fn sorted(&mut self) -> Vec<(f32, usize)> {
+        let mut v = std::mem::replace(self, TopK::new(self.k)).into_vec();
+        v.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+        v
+    }
+}

@@ -1,0 +1,355 @@
+//! Map sessions on disk (sled) with an in-memory exact search index per session.
+pub mod durability;
+pub mod index;
+pub mod kernels;
+pub mod query;
+pub mod record;
+
+use durability::GroupCommit;
+use index::{SessionIndex, Storage};
+use query::{LoopQuery, Match, Pose};
+use record::{decode_frame, encode_frame, frame_key, key_frame, FrameHeader, SessionMeta};
+use serde::Serialize;
+use std::collections::HashMap;
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Instant;
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum StoreError {
+    #[error("session '{0}' not found")]
+    SessionNotFound(String),
+    #[error("frame {1} not found in session '{0}'")]
+    FrameNotFound(String, u64),
+    #[error("session '{0}' already exists")]
+    SessionExists(String),
+    #[error("frame {1} already exists in session '{0}'")]
+    FrameExists(String, u64),
+    #[error("{0}")]
+    InvalidArgument(String),
+    #[error("storage failure: {0}")]
+    Storage(String),
+}
+
+impl From<sled::Error> for StoreError {
+    fn from(e: sled::Error) -> Self {
+        StoreError::Storage(e.to_string())
+    }
+}
+
+/// A frame to add. `frame_id` None: the session assigns the next free id.
+#[derive(Clone, Debug)]
+pub struct NewFrame {
+    pub frame_id: Option<u64>,
+    pub robot_id: String,
+    pub timestamp: f64,
+    pub pose: Option<Pose>,
+    pub metadata: Option<serde_json::Value>,
+    pub descriptor: Vec<f32>,
+}
+
+/// What a session holds, for listings.
+#[derive(Clone, Debug, Serialize)]
+pub struct SessionInfo {
+    #[serde(flatten)]
+    pub meta: SessionMeta,
+    pub frames: usize,
+    pub robots: Vec<String>,
+    pub bytes_on_disk: u64,
+    pub bytes_in_memory: usize,
+}
+
+pub struct Session {
+    pub meta: SessionMeta,
+    tree: sled::Tree,
+    index: RwLock<SessionIndex>,
+    next_id: AtomicU64,
+    bytes: AtomicU64,
+}
+
+pub struct Store {
+    db: sled::Db,
+    sessions_tree: sled::Tree,
+    sessions: RwLock<HashMap<String, Arc<Session>>>,
+    /// Serialises session creation and deletion (not frame writes).
+    admin: Mutex<()>,
+    commit: GroupCommit,
+    search_threads: usize,
+}
+
+fn session_tree_name(id: &str) -> String {
+    format!("session/{id}")
+}
+
+fn valid_session_id(id: &str) -> bool {
+    (1..=64).contains(&id.len()) && id.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+}
+
+/// Unit length, finite values: cosine similarity is then a dot product.
+pub fn normalize(descriptor: &mut [f32]) -> Result<(), StoreError> {
+    if descriptor.iter().any(|v| !v.is_finite()) {
+        return Err(StoreError::InvalidArgument("descriptor has non-finite values".into()));
+    }
+    let norm = descriptor.iter().map(|v| v * v).sum::<f32>().sqrt();
+    if norm < 1e-12 {
+        return Err(StoreError::InvalidArgument("descriptor is all zeros".into()));
+    }
+    descriptor.iter_mut().for_each(|v| *v /= norm);
+    Ok(())
+}
+
+impl Store {
+    /// Opens (or creates) the database and rebuilds every session's index from it.
+    pub fn open(dir: &Path) -> Result<Self, StoreError> {
+        std::fs::create_dir_all(dir).map_err(|e| StoreError::Storage(format!("{}: {e}", dir.display())))?;
+        let db = sled::Config::new().path(dir.join("sled")).open()?;
+        let sessions_tree = db.open_tree("sessions")?;
+        let t = Instant::now();
+        let mut sessions = HashMap::new();
+        let mut frames = 0;
+        for entry in sessions_tree.iter() {
+            let (_, v) = entry?;
+            let meta: SessionMeta = serde_json::from_slice(&v).map_err(|e| StoreError::Storage(e.to_string()))?;
+            let session = Session::load(&db, meta)?;
+            frames += session.index.read().expect("index lock").len();
+            sessions.insert(session.meta.id.clone(), Arc::new(session));
+        }
+        tracing::info!(
+            sessions = sessions.len(),
+            frames,
+            elapsed_ms = t.elapsed().as_millis() as u64,
+            "indexes rebuilt from sled"
+        );
+        let commit = GroupCommit::start(db.clone());
+        let search_threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+        Ok(Self { db, sessions_tree, sessions: RwLock::new(sessions), admin: Mutex::new(()), commit, search_threads })
+    }
+
+    pub fn set_search_threads(&mut self, n: usize) {
+        self.search_threads = n.max(1);
+    }
+
+    pub async fn create_session(
+        &self,
+        id: Option<String>,
+        name: String,
+        dim: usize,
+        descriptor_id: String,
+        storage: Storage,
+        default_query: LoopQuery,
+    ) -> Result<SessionMeta, StoreError> {
+        if !(1..=65536).contains(&dim) {
+            return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
+        }
+        let meta = {
+            let _admin = self.admin.lock().expect("admin lock");
+            let id = id.unwrap_or_else(|| {
+                let nanos =
+                    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos();
+                format!("s{nanos:x}")
+            });
+            if !valid_session_id(&id) {
+                return Err(StoreError::InvalidArgument(format!(
+                    "session id '{id}' must be 1-64 characters of letters, digits, '-', '_' or '.'"
+                )));
+            }
+            if self.sessions.read().expect("sessions lock").contains_key(&id) {
+                return Err(StoreError::SessionExists(id));
+            }
+            let created =
+                std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64();
+            let meta = SessionMeta { id: id.clone(), name, created, dim, descriptor_id, storage, default_query };
+            let session = Session::load(&self.db, meta.clone())?;
+            self.sessions_tree.insert(id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises"))?;
+            self.sessions.write().expect("sessions lock").insert(id, Arc::new(session));
+            meta
+        };
+        self.durable().await?;
+        Ok(meta)
+    }
+
+    pub fn session(&self, id: &str) -> Result<Arc<Session>, StoreError> {
+        self.sessions
+            .read()
+            .expect("sessions lock")
+            .get(id)
+            .cloned()
+            .ok_or_else(|| StoreError::SessionNotFound(id.into()))
+    }
+
+    pub fn list(&self) -> Vec<SessionInfo> {
+        let mut v: Vec<SessionInfo> = self.sessions.read().expect("sessions lock").values().map(|s| s.info()).collect();
+        v.sort_by(|a, b| a.meta.created.total_cmp(&b.meta.created).then(a.meta.id.cmp(&b.meta.id)));
+        v
+    }
+
+    /// Deletes the session and its frames from disk and memory.
+    pub async fn delete_session(&self, id: &str) -> Result<(), StoreError> {
+        {
+            let _admin = self.admin.lock().expect("admin lock");
+            let removed = self.sessions.write().expect("sessions lock").remove(id);
+            if removed.is_none() {
+                return Err(StoreError::SessionNotFound(id.into()));
+            }
+            self.sessions_tree.remove(id.as_bytes())?;
+            self.db.drop_tree(session_tree_name(id))?;
+        }
+        self.durable().await
+    }
+
+    /// Adds frames; acknowledged (returns their ids) once they are on disk.
+    pub async fn add_frames(&self, session: &str, frames: Vec<NewFrame>) -> Result<Vec<u64>, StoreError> {
+        let s = self.session(session)?;
+        let mut prepared = Vec::with_capacity(frames.len());
+        for mut f in frames {
+            if f.descriptor.len() != s.meta.dim {
+                return Err(StoreError::InvalidArgument(format!(
+                    "descriptor has {} values; session '{}' holds {}-d descriptors",
+                    f.descriptor.len(),
+                    s.meta.id,
+                    s.meta.dim
+                )));
+            }
+            if f.robot_id.is_empty() || f.robot_id.len() > 128 {
+                return Err(StoreError::InvalidArgument("robot_id must be 1-128 characters".into()));
+            }
+            if !f.timestamp.is_finite() {
+                return Err(StoreError::InvalidArgument("timestamp must be a finite number".into()));
+            }
+            normalize(&mut f.descriptor)?;
+            prepared.push(f);
+        }
+        let mut written = Vec::with_capacity(prepared.len());
+        let mut added_bytes = 0u64;
+        for f in &prepared {
+            let header = FrameHeader {
+                robot_id: f.robot_id.clone(),
+                timestamp: f.timestamp,
+                pose: f.pose,
+                metadata: f.metadata.clone(),
+            };
+            let value = encode_frame(&header, &f.descriptor, s.meta.storage);
+            let id = match f.frame_id {
+                Some(id) => {
+                    if !s.insert_new(id, &value)? {
+                        // All or nothing: take back what this call already wrote.
+                        for &done in &written {
+                            s.tree.remove(frame_key(done))?;
+                        }
+                        return Err(StoreError::FrameExists(s.meta.id.clone(), id));
+                    }
+                    s.next_id.fetch_max(id.saturating_add(1), Relaxed);
+                    id
+                }
+                None => loop {
+                    let id = s.next_id.fetch_add(1, Relaxed);
+                    if s.insert_new(id, &value)? {
+                        break id;
+                    }
+                },
+            };
+            added_bytes += (8 + value.len()) as u64;
+            written.push(id);
+        }
+        s.bytes.fetch_add(added_bytes, Relaxed);
+        self.durable().await?;
+        // Searchable once durable: a match never points at a frame that could still vanish.
+        let mut index = s.index.write().expect("index lock");
+        for (f, &id) in prepared.iter().zip(&written) {
+            index.push(id, &f.robot_id, f.timestamp, f.pose, &f.descriptor);
+        }
+        Ok(written)
+    }
+
+    /// Ranked matches for a descriptor (normalised here).
+    pub fn query(&self, session: &str, mut descriptor: Vec<f32>, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
+        let s = self.session(session)?;
+        if descriptor.len() != s.meta.dim {
+            return Err(StoreError::InvalidArgument(format!(
+                "query descriptor has {} values; session '{}' holds {}-d descriptors",
+                descriptor.len(),
+                s.meta.id,
+                s.meta.dim
+            )));
+        }
+        if q.k > query::MAX_K {
+            return Err(StoreError::InvalidArgument(format!("k = {} exceeds the limit of {}", q.k, query::MAX_K)));
+        }
+        normalize(&mut descriptor)?;
+        let matches = s.index.read().expect("index lock").search(&descriptor, q, self.search_threads);
+        Ok(matches)
+    }
+
+    /// Ranked matches for a stored frame (itself excluded).
+    pub fn query_frame(&self, session: &str, frame_id: u64, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
+        let s = self.session(session)?;
+        let d = s.index.read().expect("index lock").descriptor(frame_id);
+        let d = d.ok_or_else(|| StoreError::FrameNotFound(session.into(), frame_id))?;
+        let mut q = q.clone();
+        q.k += 1;
+        let mut matches = self.query(session, d, &q)?;
+        matches.retain(|m| m.frame_id != frame_id);
+        matches.truncate(q.k - 1);
+        Ok(matches)
+    }
+
+    /// A stored frame: header and descriptor as stored (f16 sessions give f16-rounded values).
+    pub fn frame(&self, session: &str, frame_id: u64) -> Result<(FrameHeader, Vec<f32>), StoreError> {
+        let s = self.session(session)?;
+        let v = s.tree.get(frame_key(frame_id))?.ok_or_else(|| StoreError::FrameNotFound(session.into(), frame_id))?;
+        decode_frame(&v).map_err(StoreError::Storage)
+    }
+
+    async fn durable(&self) -> Result<(), StoreError> {
+        self.commit.durable().await.map_err(StoreError::Storage)
+    }
+
+    /// Names of the session trees on disk (a deleted session's tree is gone).
+    pub fn session_trees(&self) -> Vec<String> {
+        self.db
+            .tree_names()
+            .iter()
+            .filter_map(|n| std::str::from_utf8(n).ok()?.strip_prefix("session/").map(str::to_string))
+            .collect()
+    }
+
+    /// Everything flushed (used at shutdown).
+    pub fn flush(&self) -> Result<(), StoreError> {
+        self.db.flush()?;
+        Ok(())
+    }
+}
+
+impl Session {
+    fn load(db: &sled::Db, meta: SessionMeta) -> Result<Self, StoreError> {
+        let tree = db.open_tree(session_tree_name(&meta.id))?;
+        let mut index = SessionIndex::new(meta.dim, meta.storage);
+        let mut bytes = 0u64;
+        for entry in tree.iter() {
+            let (k, v) = entry?;
+            let id = key_frame(&k).ok_or_else(|| StoreError::Storage("bad frame key".into()))?;
+            let (h, d) = decode_frame(&v).map_err(StoreError::Storage)?;
+            index.push(id, &h.robot_id, h.timestamp, h.pose, &d);
+            bytes += (k.len() + v.len()) as u64;
+        }
+        let next = index.max_frame_id().map_or(0, |m| m.saturating_add(1));
+        Ok(Self { meta, tree, index: RwLock::new(index), next_id: AtomicU64::new(next), bytes: AtomicU64::new(bytes) })
+    }
+
+    /// Inserts only if the frame id is free (atomic in sled). False: the id is taken.
+    fn insert_new(&self, id: u64, value: &[u8]) -> Result<bool, StoreError> {
+        Ok(self.tree.compare_and_swap(frame_key(id), None as Option<&[u8]>, Some(value))?.is_ok())
+    }
+
+    pub fn info(&self) -> SessionInfo {
+        let index = self.index.read().expect("index lock");
+        SessionInfo {
+            meta: self.meta.clone(),
+            frames: index.len(),
+            robots: index.robots().to_vec(),
+            bytes_on_disk: self.bytes.load(Relaxed),
+            bytes_in_memory: index.memory_bytes(),
+        }
+    }
+}

@@ -1,0 +1,76 @@
+//! Loop query options and results.
+use serde::{Deserialize, Serialize};
+
+/// Which robots' frames a query may match.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Scope {
+    /// Every robot, the querying one included.
+    #[default]
+    All,
+    /// Only the querying robot's own frames (single-robot loop closure).
+    SameRobot,
+    /// Only other robots' frames (inter-robot loop closure / map merging).
+    OtherRobots,
+}
+
+/// "Where have we been that looks like this?" Every field has a safe default.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LoopQuery {
+    /// Most matches returned.
+    pub k: usize,
+    /// Matches scoring below this cosine similarity are not returned.
+    pub min_score: f32,
+    /// Robot asking; the exclusion window and the scope refer to it.
+    pub robot_id: Option<String>,
+    /// Skip the querying robot's own last N frames (neighbours always look alike).
+    pub exclude_last_frames: usize,
+    /// Skip the querying robot's own frames newer than `at_time - exclude_last_seconds`.
+    pub exclude_last_seconds: f64,
+    /// The query's own time (defaults to the robot's newest frame time) for the seconds window.
+    pub at_time: Option<f64>,
+    pub scope: Scope,
+    /// Optional inclusive ranges.
+    pub time_range: Option<(f64, f64)>,
+    pub frame_id_range: Option<(u64, u64)>,
+}
+
+impl Default for LoopQuery {
+    fn default() -> Self {
+        Self {
+            k: 5,
+            min_score: -1.0,
+            robot_id: None,
+            exclude_last_frames: 0,
+            exclude_last_seconds: 0.0,
+            at_time: None,
+            scope: Scope::All,
+            time_range: None,
+            frame_id_range: None,
+        }
+    }
+}
+
+/// A 6-DoF pose: position and unit quaternion (x, y, z, qx, qy, qz, qw).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub qx: f64,
+    pub qy: f64,
+    pub qz: f64,
+    pub qw: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Match {
+    pub frame_id: u64,
+    pub score: f32,
+    pub robot_id: String,
+    pub timestamp: f64,
+    pub pose: Option<Pose>,
+}
+
+pub const MAX_K: usize = 1000;

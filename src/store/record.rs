@@ -1,0 +1,74 @@
+//! What sled holds: session metadata (JSON) and frame records (small header + raw descriptor).
+use super::index::Storage;
+use super::query::Pose;
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SessionMeta {
+    pub id: String,
+    pub name: String,
+    /// Unix time, seconds.
+    pub created: f64,
+    pub dim: usize,
+    /// The descriptor space (model, variant, input size): only matching descriptors may be added.
+    pub descriptor_id: String,
+    pub storage: Storage,
+    /// Defaults applied to this session's loop queries.
+    pub default_query: super::query::LoopQuery,
+}
+
+/// A frame as stored (without its descriptor, which follows the JSON header raw).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameHeader {
+    pub robot_id: String,
+    pub timestamp: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose: Option<Pose>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub metadata: Option<serde_json::Value>,
+}
+
+const VERSION: u8 = 1;
+
+/// `[version][storage][u32 header length][header JSON][descriptor, little endian]`.
+pub fn encode_frame(h: &FrameHeader, descriptor: &[f32], storage: Storage) -> Vec<u8> {
+    let json = serde_json::to_vec(h).expect("frame header serialises");
+    let mut out = Vec::with_capacity(6 + json.len() + descriptor.len() * storage.bytes_per_value());
+    out.push(VERSION);
+    out.push(match storage {
+        Storage::F16 => 0,
+        Storage::F32 => 1,
+    });
+    out.extend((json.len() as u32).to_le_bytes());
+    out.extend(json);
+    match storage {
+        Storage::F16 => descriptor.iter().for_each(|&v| out.extend(half::f16::from_f32(v).to_bits().to_le_bytes())),
+        Storage::F32 => descriptor.iter().for_each(|&v| out.extend(v.to_le_bytes())),
+    }
+    out
+}
+
+pub fn decode_frame(bytes: &[u8]) -> Result<(FrameHeader, Vec<f32>), String> {
+    let bad = || "corrupt frame record".to_string();
+    if bytes.len() < 6 || bytes[0] != VERSION {
+        return Err(bad());
+    }
+    let len = u32::from_le_bytes([bytes[2], bytes[3], bytes[4], bytes[5]]) as usize;
+    let json = bytes.get(6..6 + len).ok_or_else(bad)?;
+    let header: FrameHeader = serde_json::from_slice(json).map_err(|e| e.to_string())?;
+    let raw = &bytes[6 + len..];
+    let descriptor = match bytes[1] {
+        0 => raw.chunks_exact(2).map(|c| half::f16::from_bits(u16::from_le_bytes([c[0], c[1]])).to_f32()).collect(),
+        1 => raw.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect(),
+        _ => return Err(bad()),
+    };
+    Ok((header, descriptor))
+}
+
+pub fn frame_key(frame_id: u64) -> [u8; 8] {
+    frame_id.to_be_bytes()
+}
+
+pub fn key_frame(key: &[u8]) -> Option<u64> {
+    Some(u64::from_be_bytes(key.try_into().ok()?))
+}

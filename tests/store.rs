@@ -1,0 +1,297 @@
+//! Map sessions on a real sled database, with descriptors of real Corridor frames.
+mod common;
+use common::*;
+use loopd::model::network::Variant;
+use loopd::store::index::Storage;
+use loopd::store::query::{LoopQuery, Pose, Scope};
+use loopd::store::{NewFrame, Store, StoreError};
+use std::sync::OnceLock;
+
+/// Corridor `query/` and `ref/` descriptors (ImageNet backbone, 224x224 input), embedded once.
+type Traversals = (Vec<Vec<f32>>, Vec<Vec<f32>>);
+
+fn corridor() -> &'static Traversals {
+    static D: OnceLock<Traversals> = OnceLock::new();
+    D.get_or_init(|| {
+        let cfg = loopd::model::config::ModelConfig::default();
+        let (model, _) =
+            loopd::model::Model::load(&weights(), cfg, tch::Device::Cpu, loopd::model::device::DType::F32).unwrap();
+        let embed = |dir: &str| -> Vec<Vec<f32>> {
+            let inputs: Vec<tch::Tensor> = (0..111)
+                .map(|i| {
+                    let bytes = std::fs::read(data(&format!("corridor/{dir}/{i:07}.jpg"))).unwrap();
+                    loopd::model::preprocess::prepare(&bytes, &Default::default(), &model.config.preprocess).unwrap()
+                })
+                .collect();
+            inputs
+                .chunks(37)
+                .flat_map(|c| loopd::model::rows(&model.descriptors(c, Variant::BACKBONE).unwrap()).unwrap())
+                .collect()
+        };
+        (embed("query"), embed("ref"))
+    })
+}
+
+fn frame(id: Option<u64>, robot: &str, t: f64, d: &[f32]) -> NewFrame {
+    NewFrame {
+        frame_id: id,
+        robot_id: robot.into(),
+        timestamp: t,
+        pose: Some(Pose { x: t, y: 0.0, z: 0.0, qx: 0.0, qy: 0.0, qz: 0.0, qw: 1.0 }),
+        metadata: Some(serde_json::json!({ "camera": "fisheye" })),
+        descriptor: d.to_vec(),
+    }
+}
+
+async fn two_robot_session(store: &Store, id: &str, storage: Storage) {
+    let (query, reference) = corridor();
+    store
+        .create_session(Some(id.into()), "corridor".into(), 2048, "test".into(), storage, LoopQuery::default())
+        .await
+        .unwrap();
+    let refs: Vec<NewFrame> =
+        reference.iter().enumerate().map(|(i, d)| frame(Some(i as u64), "ref", i as f64, d)).collect();
+    store.add_frames(id, refs).await.unwrap();
+    let qs: Vec<NewFrame> =
+        query.iter().enumerate().map(|(i, d)| frame(Some(1000 + i as u64), "query", 500.0 + i as f64, d)).collect();
+    store.add_frames(id, qs).await.unwrap();
+}
+
+#[tokio::test]
+async fn everything_survives_a_reopen_with_the_same_scores() {
+    let dir = tempfile::tempdir().unwrap();
+    let q = LoopQuery { k: 5, robot_id: Some("query".into()), scope: Scope::OtherRobots, ..Default::default() };
+    let mut before = Vec::new();
+    {
+        let store = Store::open(dir.path()).unwrap();
+        two_robot_session(&store, "f16", Storage::F16).await;
+        two_robot_session(&store, "f32", Storage::F32).await;
+        for s in ["f16", "f32"] {
+            for i in [0usize, 40, 110] {
+                before.push(store.query(s, corridor().0[i].clone(), &q).unwrap());
+            }
+        }
+        assert_eq!(store.list().len(), 2);
+    } // dropped: the database is closed
+    let store = Store::open(dir.path()).unwrap();
+    let mut after = Vec::new();
+    for s in ["f16", "f32"] {
+        for i in [0usize, 40, 110] {
+            after.push(store.query(s, corridor().0[i].clone(), &q).unwrap());
+        }
+    }
+    assert_eq!(before, after, "matches and scores changed across a reopen");
+    assert!(before.iter().all(|m| m.len() == 5 && m.iter().all(|x| x.robot_id == "ref")));
+    let info = store.list();
+    assert_eq!(info.iter().map(|i| i.frames).collect::<Vec<_>>(), vec![222, 222]);
+    assert_eq!(info[0].robots, vec!["ref".to_string(), "query".to_string()]);
+    assert!(info[0].bytes_on_disk < info[1].bytes_on_disk, "f16 must take less disk than f32");
+    // Stored records come back whole.
+    let (h, d) = store.frame("f32", 1040).unwrap();
+    assert_eq!((h.robot_id.as_str(), h.timestamp), ("query", 540.0));
+    assert_eq!(h.metadata, Some(serde_json::json!({ "camera": "fisheye" })));
+    let dot: f32 = d.iter().zip(&corridor().0[40]).map(|(a, b)| a * b).sum();
+    assert!(dot > 0.99999);
+    // The f16 session's scores are within f16 rounding of the f32 session's.
+    for (a, b) in before[..3].iter().zip(&before[3..]) {
+        for (x, y) in a.iter().zip(b) {
+            assert!((x.score - y.score).abs() < 2e-3, "{} vs {}", x.score, y.score);
+        }
+    }
+}
+
+#[tokio::test]
+async fn corridor_query_frames_find_their_reference_frames() {
+    // Real ground truth: top-1 of most query frames is one of gt.csv's reference frames.
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path()).unwrap();
+    two_robot_session(&store, "c", Storage::F16).await;
+    let gt = std::fs::read_to_string(data("corridor/gt.csv")).unwrap();
+    let (mut hits, mut total) = (0, 0);
+    for line in gt.lines().skip(1) {
+        let (q, refs) = line.split_once(',').unwrap();
+        let q: usize = q.trim().parse().unwrap();
+        let refs: Vec<u64> = refs.split_whitespace().map(|r| r.parse().unwrap()).collect();
+        let opts = LoopQuery { k: 1, robot_id: Some("query".into()), scope: Scope::OtherRobots, ..Default::default() };
+        let m = store.query_frame("c", 1000 + q as u64, &opts).unwrap();
+        total += 1;
+        hits += refs.contains(&m[0].frame_id) as usize;
+    }
+    assert_eq!(total, 111);
+    // Measured 62/111 (0.56) for the plain ImageNet backbone at 224x224.
+    assert!(hits as f64 / total as f64 > 0.45, "recall@1 {hits}/{total}");
+}
+
+#[tokio::test]
+async fn deletion_gives_back_disk_and_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let store = Store::open(dir.path()).unwrap();
+        two_robot_session(&store, "gone", Storage::F16).await;
+        two_robot_session(&store, "kept", Storage::F16).await;
+        assert_eq!(store.session_trees().len(), 2);
+        store.delete_session("gone").await.unwrap();
+        assert_eq!(store.delete_session("gone").await, Err(StoreError::SessionNotFound("gone".into())));
+        assert!(matches!(
+            store.query("gone", corridor().0[0].clone(), &LoopQuery::default()),
+            Err(StoreError::SessionNotFound(_))
+        ));
+        assert_eq!(store.session_trees(), vec!["kept".to_string()]);
+    }
+    let store = Store::open(dir.path()).unwrap();
+    assert_eq!(store.list().iter().map(|s| s.meta.id.clone()).collect::<Vec<_>>(), vec!["kept".to_string()]);
+    assert_eq!(store.session_trees(), vec!["kept".to_string()]);
+    assert_eq!(store.list()[0].frames, 222, "deleting one session touched another");
+}
+
+#[tokio::test]
+async fn exclusion_window_skips_the_robots_own_recent_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path()).unwrap();
+    let (query, _) = corridor();
+    store
+        .create_session(Some("w".into()), "w".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+        .await
+        .unwrap();
+    // One robot driving the corridor: frame i at time 0.5 * i.
+    let frames: Vec<NewFrame> = query.iter().enumerate().map(|(i, d)| frame(None, "r1", 0.5 * i as f64, d)).collect();
+    let ids = store.add_frames("w", frames).await.unwrap();
+    assert_eq!(ids, (0..111).collect::<Vec<u64>>(), "auto ids are consecutive");
+    let last = query[110].clone();
+    // Without a window the newest frame matches itself and its neighbours.
+    let plain =
+        store.query("w", last.clone(), &LoopQuery { k: 3, robot_id: Some("r1".into()), ..Default::default() }).unwrap();
+    assert_eq!(plain[0].frame_id, 110);
+    let by_frames = LoopQuery { k: 20, robot_id: Some("r1".into()), exclude_last_frames: 10, ..Default::default() };
+    let m = store.query("w", last.clone(), &by_frames).unwrap();
+    assert_eq!(m.len(), 20);
+    assert!(m.iter().all(|x| x.frame_id < 101), "{:?}", m.iter().map(|x| x.frame_id).collect::<Vec<_>>());
+    let by_time = LoopQuery { k: 20, robot_id: Some("r1".into()), exclude_last_seconds: 10.0, ..Default::default() };
+    let m = store.query("w", last.clone(), &by_time).unwrap();
+    assert!(m.iter().all(|x| x.timestamp <= 55.0 - 10.0));
+    // Another robot is not affected by r1's window.
+    let other = LoopQuery { k: 3, robot_id: Some("r2".into()), exclude_last_frames: 10, ..Default::default() };
+    assert_eq!(store.query("w", last.clone(), &other).unwrap()[0].frame_id, 110);
+    // Ranges
+    let ranged =
+        LoopQuery { k: 50, frame_id_range: Some((10, 20)), time_range: Some((6.0, 100.0)), ..Default::default() };
+    let m = store.query("w", last, &ranged).unwrap();
+    assert_eq!(m.iter().map(|x| x.frame_id).min(), Some(12));
+    assert_eq!(m.len(), 9);
+}
+
+#[tokio::test]
+async fn scopes_with_three_robots() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path()).unwrap();
+    two_robot_session(&store, "s", Storage::F32).await;
+    let (query, _) = corridor();
+    let third: Vec<NewFrame> = query
+        .iter()
+        .take(20)
+        .enumerate()
+        .map(|(i, d)| frame(Some(5000 + i as u64), "third", 900.0 + i as f64, d))
+        .collect();
+    store.add_frames("s", third).await.unwrap();
+    let ask = |scope| LoopQuery { k: 50, robot_id: Some("query".into()), scope, ..Default::default() };
+    let d = query[5].clone();
+    let same = store.query("s", d.clone(), &ask(Scope::SameRobot)).unwrap();
+    assert!(same.iter().all(|m| m.robot_id == "query") && same.len() == 50);
+    let other = store.query("s", d.clone(), &ask(Scope::OtherRobots)).unwrap();
+    assert!(other.iter().all(|m| m.robot_id != "query"));
+    assert!(other.iter().any(|m| m.robot_id == "ref") && other.iter().any(|m| m.robot_id == "third"));
+    assert_eq!(other[0].robot_id, "third", "the identical frame of the third robot ranks first");
+    let all = store.query("s", d.clone(), &ask(Scope::All)).unwrap();
+    assert!(all.windows(2).all(|w| w[0].score >= w[1].score), "ranked best first");
+    let robots: std::collections::HashSet<_> = all.iter().map(|m| m.robot_id.as_str()).collect();
+    assert_eq!(robots.len(), 3);
+    let stranger = LoopQuery { k: 5, robot_id: Some("nobody".into()), scope: Scope::SameRobot, ..Default::default() };
+    assert!(store.query("s", d.clone(), &stranger).unwrap().is_empty());
+    let strict = LoopQuery { k: 50, min_score: 0.999, ..Default::default() };
+    assert!(store.query("s", d, &strict).unwrap().iter().all(|m| m.score >= 0.999));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn concurrent_writers_lose_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let store = std::sync::Arc::new(Store::open(dir.path()).unwrap());
+        store
+            .create_session(Some("c".into()), "c".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+            .await
+            .unwrap();
+        let (query, reference) = corridor();
+        let tasks: Vec<_> = (0..8)
+            .map(|w| {
+                let store = store.clone();
+                tokio::spawn(async move {
+                    let mut ids = Vec::new();
+                    for i in 0..50 {
+                        let d = if w % 2 == 0 { &query[(w * 13 + i) % 111] } else { &reference[(w * 7 + i) % 111] };
+                        // one frame per call, as a robot sends them
+                        ids.extend(
+                            store.add_frames("c", vec![frame(None, &format!("robot{w}"), i as f64, d)]).await.unwrap(),
+                        );
+                    }
+                    ids
+                })
+            })
+            .collect();
+        let mut ids = Vec::new();
+        for t in tasks {
+            ids.extend(t.await.unwrap());
+        }
+        ids.sort();
+        ids.dedup();
+        assert_eq!(ids.len(), 400, "duplicate or lost frame ids");
+        assert_eq!(store.list()[0].frames, 400);
+        assert_eq!(store.list()[0].robots.len(), 8);
+    }
+    let store = Store::open(dir.path()).unwrap();
+    assert_eq!(store.list()[0].frames, 400, "not all acknowledged frames were durable");
+}
+
+#[tokio::test]
+async fn bad_writes_get_clear_errors_and_change_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path()).unwrap();
+    let (query, _) = corridor();
+    store
+        .create_session(Some("b".into()), "b".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+        .await
+        .unwrap();
+    let again =
+        store.create_session(Some("b".into()), "b".into(), 2048, "t".into(), Storage::F16, LoopQuery::default()).await;
+    assert_eq!(again, Err(StoreError::SessionExists("b".into())));
+    let bad_id = store
+        .create_session(Some("no spaces/".into()), "x".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+        .await;
+    assert!(matches!(bad_id, Err(StoreError::InvalidArgument(_))));
+    store.add_frames("b", vec![frame(Some(7), "r", 0.0, &query[0])]).await.unwrap();
+    // A batch with a taken id is refused whole: its other frame is not stored either.
+    let batch = vec![frame(Some(8), "r", 1.0, &query[1]), frame(Some(7), "r", 2.0, &query[2])];
+    assert_eq!(store.add_frames("b", batch).await, Err(StoreError::FrameExists("b".into(), 7)));
+    assert!(matches!(store.frame("b", 8), Err(StoreError::FrameNotFound(_, 8))));
+    let short = store.add_frames("b", vec![frame(None, "r", 0.0, &query[0][..100])]).await;
+    assert!(matches!(&short, Err(StoreError::InvalidArgument(m)) if m.contains("100 values")), "{short:?}");
+    let mut nan = query[3].clone();
+    nan[5] = f32::NAN;
+    assert!(matches!(
+        store.add_frames("b", vec![frame(None, "r", 0.0, &nan)]).await,
+        Err(StoreError::InvalidArgument(_))
+    ));
+    assert!(matches!(
+        store.add_frames("nope", vec![frame(None, "r", 0.0, &query[0])]).await,
+        Err(StoreError::SessionNotFound(_))
+    ));
+    assert!(matches!(store.query("b", vec![0.0; 2048], &LoopQuery::default()), Err(StoreError::InvalidArgument(_))));
+    assert!(matches!(
+        store.query("b", query[0].clone(), &LoopQuery { k: 5000, ..Default::default() }),
+        Err(StoreError::InvalidArgument(_))
+    ));
+    assert!(matches!(store.query_frame("b", 99, &LoopQuery::default()), Err(StoreError::FrameNotFound(_, 99))));
+    // The stored frame is untouched.
+    assert_eq!(store.list()[0].frames, 1);
+    let m = store.query("b", query[0].clone(), &LoopQuery::default()).unwrap();
+    assert_eq!((m.len(), m[0].frame_id), (1, 7));
+}
