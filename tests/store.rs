@@ -295,3 +295,27 @@ async fn bad_writes_get_clear_errors_and_change_nothing() {
     let m = store.query("b", query[0].clone(), &LoopQuery::default()).unwrap();
     assert_eq!((m.len(), m[0].frame_id), (1, 7));
 }
+
+#[test]
+fn batched_search_matches_single_searches() {
+    use loopd::store::index::SessionIndex;
+    let (query, reference) = corridor();
+    for storage in [Storage::F16, Storage::F32] {
+        let mut index = SessionIndex::new(2048, storage);
+        for (i, d) in reference.iter().chain(query.iter()).enumerate() {
+            index.push(i as u64, if i < 111 { "ref" } else { "query" }, i as f64, None, d);
+        }
+        let opts = LoopQuery { k: 7, robot_id: Some("query".into()), exclude_last_frames: 30, ..Default::default() };
+        let batch = index.search_batch(&query[..20], &opts);
+        for (q, got) in query[..20].iter().zip(&batch) {
+            let single = index.search(q, &opts, 2);
+            assert_eq!(
+                got.iter().map(|m| m.frame_id).collect::<Vec<_>>(),
+                single.iter().map(|m| m.frame_id).collect::<Vec<_>>()
+            );
+            for (a, b) in got.iter().zip(&single) {
+                assert!((a.score - b.score).abs() < 1e-4);
+            }
+        }
+    }
+}

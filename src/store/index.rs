@@ -1,5 +1,5 @@
 //! One session's descriptors, contiguous in memory, searched exactly (cosine = dot of unit rows).
-use super::kernels::{dots_f16, dots_f32};
+use super::kernels::{dots_f16, dots_f32, f16_to_f32};
 use super::query::{LoopQuery, Match, Pose, Scope};
 use serde::{Deserialize, Serialize};
 use std::collections::{BinaryHeap, HashMap};
@@ -185,21 +185,90 @@ impl SessionIndex {
                 merged
             })
         };
-        heap.sorted()
-            .into_iter()
-            .map(|(score, row)| {
-                let f = &self.frames[row];
-                Match {
-                    frame_id: f.frame_id,
-                    score,
-                    robot_id: self.robots[f.robot as usize].clone(),
-                    timestamp: f.timestamp,
-                    pose: f.pose,
-                }
-            })
-            .collect()
+        heap.sorted().into_iter().map(|(score, row)| self.to_match(score, row)).collect()
     }
 }
+
+impl SessionIndex {
+    /// Top-k for many queries at once (same options): rows are converted to f32 a block at a
+    /// time and scored with one matrix product per block (BLAS via libtorch), which is
+    /// compute-bound rather than memory-bound once there are tens of queries.
+    pub fn search_batch(&self, queries: &[Vec<f32>], opts: &LoopQuery) -> Vec<Vec<Match>> {
+        let k = opts.k.min(super::query::MAX_K);
+        if queries.len() <= 1 || k == 0 || self.frames.is_empty() {
+            return queries.iter().map(|q| self.search(q, opts, 1)).collect();
+        }
+        let filter = Filter::new(self, opts);
+        let b = queries.len();
+        let flat: Vec<f32> = queries.iter().flat_map(|q| q.iter().copied()).collect();
+        let qt = tch::Tensor::from_slice(&flat).reshape([b as i64, self.dim as i64]);
+        let mut heaps: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
+        let n = self.frames.len();
+        let block = (BATCH_BLOCK_BYTES / (4 * self.dim)).max(1);
+        let mut rows32 = match self.rows {
+            Rows::F16(_) => vec![0f32; block * self.dim],
+            Rows::F32(_) => Vec::new(), // scored in place
+        };
+        for s in (0..n).step_by(block) {
+            let e = (s + block).min(n);
+            let block_rows: &[f32] = match &self.rows {
+                Rows::F16(v) => {
+                    // Both cores convert: otherwise the conversion is a third of the batch time.
+                    let src = &v[s * self.dim..e * self.dim];
+                    let dst = &mut rows32[..src.len()];
+                    let half = (src.len() / 2).next_multiple_of(self.dim);
+                    let (d0, d1) = dst.split_at_mut(half.min(dst.len()));
+                    let (s0, s1) = src.split_at(half.min(src.len()));
+                    std::thread::scope(|sc| {
+                        sc.spawn(|| f16_to_f32(s1, d1));
+                        f16_to_f32(s0, d0);
+                    });
+                    &rows32[..(e - s) * self.dim]
+                }
+                Rows::F32(v) => &v[s * self.dim..e * self.dim],
+            };
+            let shape = [(e - s) as i64, self.dim as i64];
+            // SAFETY: `block_rows` outlives `rt`, which is dropped at the end of this iteration
+            // and only read by the product below (no copy of the block is made).
+            let rt = unsafe {
+                tch::Tensor::from_blob(
+                    block_rows.as_ptr() as *const u8,
+                    &shape,
+                    &[shape[1], 1],
+                    tch::Kind::Float,
+                    tch::Device::Cpu,
+                )
+            };
+            // rows x queries: MKL runs this orientation ~1.5x faster than queries x rows here.
+            let scores = Vec::<f32>::try_from(rt.matmul(&qt.tr()).flatten(0, -1)).unwrap_or_default();
+            for (i, row_scores) in scores.chunks_exact(b).enumerate() {
+                for (heap, &score) in heaps.iter_mut().zip(row_scores) {
+                    if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
+                        heap.push(score, s + i);
+                    }
+                }
+            }
+        }
+        heaps
+            .into_iter()
+            .map(|mut h| h.sorted().into_iter().map(|(score, row)| self.to_match(score, row)).collect())
+            .collect()
+    }
+
+    fn to_match(&self, score: f32, row: usize) -> Match {
+        let f = &self.frames[row];
+        Match {
+            frame_id: f.frame_id,
+            score,
+            robot_id: self.robots[f.robot as usize].clone(),
+            timestamp: f.timestamp,
+            pose: f.pose,
+        }
+    }
+}
+
+/// f32 bytes of one block of rows in batched search: fits the L3 cache beside the queries.
+const BATCH_BLOCK_BYTES: usize = 8 << 20;
 
 /// The query's filters, resolved once to row-level tests.
 struct Filter<'a> {

@@ -39,6 +39,20 @@ pub fn dots_f32(q: &[f32], rows: &[f32], out: &mut [f32]) {
     }
 }
 
+/// f16 bits to f32, vectorised with F16C where available.
+pub fn f16_to_f32(src: &[u16], dst: &mut [f32]) {
+    debug_assert_eq!(src.len(), dst.len());
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("f16c") {
+        // SAFETY: features detected; equal lengths checked by the caller contract above.
+        unsafe { x86::f16_to_f32(src, dst) };
+        return;
+    }
+    for (d, &s) in dst.iter_mut().zip(src) {
+        *d = f16::from_bits(s).to_f32();
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use std::arch::x86_64::*;
@@ -97,6 +111,22 @@ mod x86 {
                 j += 8;
             }
             out[i] = hsum(a0);
+        }
+    }
+
+    #[target_feature(enable = "avx2,f16c")]
+    pub unsafe fn f16_to_f32(src: &[u16], dst: &mut [f32]) {
+        let n = src.len().min(dst.len());
+        let mut i = 0;
+        while i + 8 <= n {
+            _mm256_storeu_ps(
+                dst.as_mut_ptr().add(i),
+                _mm256_cvtph_ps(_mm_loadu_si128(src.as_ptr().add(i) as *const __m128i)),
+            );
+            i += 8;
+        }
+        for j in i..n {
+            dst[j] = half::f16::from_bits(src[j]).to_f32();
         }
     }
 
