@@ -23,7 +23,21 @@ fn torch_lib_dir() -> Option<PathBuf> {
     None
 }
 
+fn compile_protos() {
+    println!("cargo:rerun-if-changed=proto");
+    // protoc comes from a crate, so a fresh machine needs no system protobuf compiler.
+    let protoc = protoc_bin_vendored::protoc_bin_path().expect("vendored protoc");
+    std::env::set_var("PROTOC", protoc);
+    let out = PathBuf::from(std::env::var("OUT_DIR").expect("OUT_DIR"));
+    tonic_prost_build::configure()
+        .bytes(".")
+        .file_descriptor_set_path(out.join("loopd_descriptor.bin"))
+        .compile_protos(&["proto/loopd/v1/loopd.proto"], &["proto"])
+        .expect("compiling proto/loopd/v1/loopd.proto");
+}
+
 fn main() {
+    compile_protos();
     println!("cargo:rerun-if-env-changed=LIBTORCH_LIB");
     println!("cargo:rerun-if-env-changed=LIBTORCH");
     println!("cargo:rerun-if-changed=build.rs");

@@ -1,6 +1,7 @@
-//! One error type for every API, with the HTTP status each case means.
+//! One error type for both APIs, with what it means in gRPC and in HTTP.
 use crate::engine::EngineError;
 use crate::model::preprocess::ImageError;
+use crate::store::StoreError;
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
@@ -8,27 +9,89 @@ use axum::Json;
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
     #[error("{0}")]
-    Engine(#[from] EngineError),
+    InvalidArgument(String),
     #[error("{0}")]
-    BadRequest(String),
+    NotFound(String),
+    #[error("{0}")]
+    AlreadyExists(String),
+    #[error("{0}")]
+    TooLarge(String),
+    #[error("{0}")]
+    Overloaded(String),
+    #[error("{0}")]
+    Unavailable(String),
+    #[error("{0}")]
+    DeadlineExceeded(String),
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl From<EngineError> for ApiError {
+    fn from(e: EngineError) -> Self {
+        let msg = e.to_string();
+        match e {
+            EngineError::Image(ImageError::TooManyBytes { .. }) => ApiError::TooLarge(msg),
+            EngineError::Image(_) => ApiError::InvalidArgument(msg),
+            EngineError::Overloaded(_) => ApiError::Overloaded(msg),
+            EngineError::Stopped => ApiError::Unavailable(msg),
+            EngineError::DeadlineExceeded => ApiError::DeadlineExceeded(msg),
+            EngineError::Inference(_) => ApiError::Internal(msg),
+        }
+    }
+}
+
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> Self {
+        let msg = e.to_string();
+        match e {
+            StoreError::SessionNotFound(_) | StoreError::FrameNotFound(..) => ApiError::NotFound(msg),
+            StoreError::SessionExists(_) | StoreError::FrameExists(..) => ApiError::AlreadyExists(msg),
+            StoreError::InvalidArgument(_) => ApiError::InvalidArgument(msg),
+            StoreError::Storage(_) => ApiError::Internal(msg),
+        }
+    }
 }
 
 impl ApiError {
-    pub fn status(&self) -> StatusCode {
+    pub fn http_status(&self) -> StatusCode {
         match self {
-            ApiError::Engine(EngineError::Image(ImageError::TooManyBytes { .. })) => StatusCode::PAYLOAD_TOO_LARGE,
-            ApiError::Engine(EngineError::Image(_)) | ApiError::BadRequest(_) => StatusCode::BAD_REQUEST,
-            ApiError::Engine(EngineError::Overloaded(_)) => StatusCode::TOO_MANY_REQUESTS,
-            ApiError::Engine(EngineError::Stopped) => StatusCode::SERVICE_UNAVAILABLE,
-            ApiError::Engine(EngineError::DeadlineExceeded) => StatusCode::GATEWAY_TIMEOUT,
-            ApiError::Engine(EngineError::Inference(_)) => StatusCode::INTERNAL_SERVER_ERROR,
+            ApiError::InvalidArgument(_) => StatusCode::BAD_REQUEST,
+            ApiError::NotFound(_) => StatusCode::NOT_FOUND,
+            ApiError::AlreadyExists(_) => StatusCode::CONFLICT,
+            ApiError::TooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
+            ApiError::Overloaded(_) => StatusCode::TOO_MANY_REQUESTS,
+            ApiError::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+            ApiError::DeadlineExceeded(_) => StatusCode::GATEWAY_TIMEOUT,
+            ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
+    }
+
+    pub fn grpc_status(&self) -> tonic::Status {
+        let msg = self.to_string();
+        match self {
+            ApiError::InvalidArgument(_) | ApiError::TooLarge(_) => tonic::Status::invalid_argument(msg),
+            ApiError::NotFound(_) => tonic::Status::not_found(msg),
+            ApiError::AlreadyExists(_) => tonic::Status::already_exists(msg),
+            ApiError::Overloaded(_) => tonic::Status::resource_exhausted(msg),
+            ApiError::Unavailable(_) => tonic::Status::unavailable(msg),
+            ApiError::DeadlineExceeded(_) => tonic::Status::deadline_exceeded(msg),
+            ApiError::Internal(_) => tonic::Status::internal(msg),
+        }
+    }
+}
+
+impl From<ApiError> for tonic::Status {
+    fn from(e: ApiError) -> Self {
+        e.grpc_status()
     }
 }
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        let status = self.status();
+        let status = self.http_status();
+        if status.is_server_error() {
+            tracing::error!(error = %self, "request failed");
+        }
         (status, Json(serde_json::json!({ "error": self.to_string(), "code": status.as_u16() }))).into_response()
     }
 }

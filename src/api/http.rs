@@ -1,35 +1,46 @@
-//! HTTP (axum, JSON) routes; `openapi.yaml` describes each of them.
+//! HTTP (axum, JSON under /v1): the same operations as gRPC; `openapi.yaml` describes each route.
 use super::error::ApiError;
-use crate::engine::Engine;
+use super::jobs::{JobStatus, Jobs, SequenceRequest};
+use super::service::{Content, CreateSession, FrameInput, LoopService, QueryOverrides, QueryTarget};
 use crate::model::network::{Variant, DESCRIPTOR_DIM};
+use crate::store::query::{Match, Pose};
+use crate::store::SessionInfo;
 use axum::body::Bytes;
-use axum::extract::{DefaultBodyLimit, Query, State};
-use axum::http::header;
+use axum::extract::{DefaultBodyLimit, FromRequest, Multipart, Path, Query, Request, State};
+use axum::http::{header, StatusCode};
 use axum::response::IntoResponse;
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
 use std::sync::Arc;
 
 pub struct AppState {
-    pub engine: Engine,
+    pub service: LoopService,
+    pub jobs: Jobs,
 }
 
-pub fn router(state: Arc<AppState>) -> Router {
-    // Slightly above the image limit so an oversized image gets our 413 message, not a bare one.
-    let body_limit = state.engine.info().limits.max_bytes + 1024;
+pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
     Router::new()
         .route("/healthz", get(|| async { "ok" }))
         .route("/readyz", get(|| async { "ready" }))
         .route("/metrics", get(metrics))
         .route("/v1/info", get(info))
         .route("/v1/embed", post(embed))
-        .layer(DefaultBodyLimit::max(body_limit))
+        .route("/v1/sessions", post(create_session).get(list_sessions))
+        .route("/v1/sessions/{id}", get(get_session).delete(delete_session))
+        .route("/v1/sessions/{id}/frames", post(add_frame))
+        .route("/v1/sessions/{id}/frames/{frame_id}", get(get_frame))
+        .route("/v1/sessions/{id}/query", post(query))
+        .route("/v1/sessions/{id}/add_and_query", post(add_and_query))
+        .route("/v1/sessions/{id}/sequences", post(start_sequence))
+        .route("/v1/jobs/{job_id}", get(job_status))
+        .layer(DefaultBodyLimit::max(max_body_bytes))
         .with_state(state)
 }
 
 async fn metrics(State(s): State<Arc<AppState>>) -> impl IntoResponse {
-    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], s.engine.metrics().render_prometheus())
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], s.service.engine.metrics().render_prometheus())
 }
 
 #[derive(Serialize)]
@@ -39,31 +50,29 @@ struct Info {
     device: String,
     dtype: String,
     max_batch: usize,
+    max_image_bytes: usize,
     version: &'static str,
 }
 
 async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
-    let i = s.engine.info();
+    let e = &s.service.engine;
+    let i = e.info();
     Json(Info {
         descriptor_id: i.descriptor_id.clone(),
         dim: DESCRIPTOR_DIM,
         device: i.device.clone(),
         dtype: i.dtype.clone(),
-        max_batch: s.engine.config().max_batch,
+        max_batch: e.config().max_batch,
+        max_image_bytes: i.limits.max_bytes,
         version: env!("CARGO_PKG_VERSION"),
     })
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 struct EmbedQuery {
-    #[serde(default = "yes")]
-    attention: bool,
-    #[serde(default = "yes")]
-    fusion: bool,
-}
-
-fn yes() -> bool {
-    true
+    attention: Option<bool>,
+    fusion: Option<bool>,
 }
 
 #[derive(Serialize)]
@@ -78,7 +87,212 @@ async fn embed(
     Query(q): Query<EmbedQuery>,
     body: Bytes,
 ) -> Result<Json<EmbedResponse>, ApiError> {
-    let variant = Variant { attention: q.attention, fusion: q.fusion };
-    let descriptor = s.engine.embed_image(body, variant, None).await?;
-    Ok(Json(EmbedResponse { descriptor_id: s.engine.info().descriptor_id.clone(), descriptor }))
+    let variant = Variant { attention: q.attention.unwrap_or(true), fusion: q.fusion.unwrap_or(true) };
+    let descriptor = s.service.engine.embed_image(body, variant, None).await?;
+    Ok(Json(EmbedResponse { descriptor_id: s.service.engine.info().descriptor_id.clone(), descriptor }))
+}
+
+async fn create_session(
+    State(s): State<Arc<AppState>>,
+    body: Result<Json<CreateSession>, axum::extract::rejection::JsonRejection>,
+) -> Result<(StatusCode, Json<SessionInfo>), ApiError> {
+    let Json(req) = body.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+    Ok((StatusCode::CREATED, Json(s.service.create_session(req).await?)))
+}
+
+#[derive(Serialize)]
+struct SessionList {
+    sessions: Vec<SessionInfo>,
+}
+
+async fn list_sessions(State(s): State<Arc<AppState>>) -> Json<SessionList> {
+    Json(SessionList { sessions: s.service.list_sessions() })
+}
+
+async fn get_session(State(s): State<Arc<AppState>>, Path(id): Path<String>) -> Result<Json<SessionInfo>, ApiError> {
+    Ok(Json(s.service.session(&id)?))
+}
+
+async fn delete_session(State(s): State<Arc<AppState>>, Path(id): Path<String>) -> Result<StatusCode, ApiError> {
+    s.service.delete_session(&id).await?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+#[derive(Serialize)]
+struct FrameView {
+    frame_id: u64,
+    robot_id: String,
+    timestamp: f64,
+    pose: Option<Pose>,
+    metadata: Option<serde_json::Value>,
+}
+
+async fn get_frame(
+    State(s): State<Arc<AppState>>,
+    Path((id, frame_id)): Path<(String, String)>,
+) -> Result<Json<FrameView>, ApiError> {
+    let frame_id = parse_u64("frame_id", &frame_id)?;
+    let (h, _) = s.service.store.frame(&id, frame_id)?;
+    Ok(Json(FrameView { frame_id, robot_id: h.robot_id, timestamp: h.timestamp, pose: h.pose, metadata: h.metadata }))
+}
+
+/// A frame or query as sent: JSON body, multipart form (an `image` file plus fields), or a raw
+/// image body with the fields in the query string. Field names are the same in all three.
+#[derive(Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct FrameFields {
+    robot_id: Option<String>,
+    timestamp: Option<f64>,
+    frame_id: Option<u64>,
+    pose: Option<Pose>,
+    metadata: Option<serde_json::Value>,
+    descriptor: Option<Vec<f32>>,
+    options: Option<QueryOverrides>,
+    #[serde(skip)]
+    image: Option<Bytes>,
+}
+
+fn parse_u64(name: &str, v: &str) -> Result<u64, ApiError> {
+    v.parse().map_err(|_| ApiError::InvalidArgument(format!("{name} must be a non-negative integer, got '{v}'")))
+}
+
+/// Text form fields (multipart or query string) into the same JSON shape as a JSON body.
+fn fields_from_text(map: HashMap<String, String>, image: Option<Bytes>) -> Result<FrameFields, ApiError> {
+    let mut obj = serde_json::Map::new();
+    for (k, v) in map {
+        let value = match k.as_str() {
+            "robot_id" => serde_json::Value::String(v),
+            "timestamp" | "frame_id" | "pose" | "metadata" | "descriptor" | "options" => serde_json::from_str(&v)
+                .map_err(|e| ApiError::InvalidArgument(format!("field {k}: not valid JSON/number ({e})")))?,
+            other => return Err(ApiError::InvalidArgument(format!("unknown field '{other}'"))),
+        };
+        obj.insert(k, value);
+    }
+    let mut f: FrameFields =
+        serde_json::from_value(serde_json::Value::Object(obj)).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
+    f.image = image;
+    Ok(f)
+}
+
+async fn read_fields(req: Request) -> Result<FrameFields, ApiError> {
+    let ctype = req.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
+    if ctype.starts_with("application/json") {
+        let Json(f) =
+            Json::<FrameFields>::from_request(req, &()).await.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+        return Ok(f);
+    }
+    if ctype.starts_with("multipart/form-data") {
+        let mut mp = Multipart::from_request(req, &()).await.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+        let (mut map, mut image) = (HashMap::new(), None);
+        while let Some(field) = mp.next_field().await.map_err(multipart_error)? {
+            let name = field.name().unwrap_or("").to_string();
+            if name == "image" {
+                image = Some(field.bytes().await.map_err(multipart_error)?);
+            } else {
+                map.insert(name, field.text().await.map_err(multipart_error)?);
+            }
+        }
+        return fields_from_text(map, image);
+    }
+    let Query(map) = Query::<HashMap<String, String>>::try_from_uri(req.uri())
+        .map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+    let body = Bytes::from_request(req, &()).await.map_err(|e| ApiError::TooLarge(e.body_text()))?;
+    fields_from_text(map, (!body.is_empty()).then_some(body))
+}
+
+fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
+    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+        ApiError::TooLarge(e.body_text())
+    } else {
+        ApiError::InvalidArgument(e.body_text())
+    }
+}
+
+fn content(f: &mut FrameFields) -> Result<Content, ApiError> {
+    match (f.image.take(), f.descriptor.take()) {
+        (Some(_), Some(_)) => Err(ApiError::InvalidArgument("send an image or a descriptor, not both".into())),
+        (Some(img), None) => Ok(Content::Image(img)),
+        (None, Some(d)) => Ok(Content::Descriptor(d)),
+        (None, None) => Err(ApiError::InvalidArgument("an image or a descriptor is required".into())),
+    }
+}
+
+fn frame_input(mut f: FrameFields) -> Result<(FrameInput, QueryOverrides), ApiError> {
+    let content = content(&mut f)?;
+    let robot_id = f.robot_id.ok_or_else(|| ApiError::InvalidArgument("robot_id is required".into()))?;
+    let timestamp = f.timestamp.ok_or_else(|| ApiError::InvalidArgument("timestamp is required".into()))?;
+    let input = FrameInput { robot_id, timestamp, frame_id: f.frame_id, pose: f.pose, metadata: f.metadata, content };
+    Ok((input, f.options.unwrap_or_default()))
+}
+
+#[derive(Serialize)]
+struct AddFrameResponse {
+    frame_id: u64,
+}
+
+async fn add_frame(
+    State(s): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    req: Request,
+) -> Result<(StatusCode, Json<AddFrameResponse>), ApiError> {
+    let (f, _) = frame_input(read_fields(req).await?)?;
+    Ok((StatusCode::CREATED, Json(AddFrameResponse { frame_id: s.service.add_frame(&id, f).await? })))
+}
+
+#[derive(Serialize)]
+struct QueryResponse {
+    matches: Vec<Match>,
+}
+
+async fn query(
+    State(s): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    req: Request,
+) -> Result<Json<QueryResponse>, ApiError> {
+    let mut f = read_fields(req).await?;
+    let target = match f.frame_id {
+        Some(frame) if f.image.is_none() && f.descriptor.is_none() => QueryTarget::Frame(frame),
+        _ => QueryTarget::Content(content(&mut f)?),
+    };
+    let opts = f.options.unwrap_or_default();
+    Ok(Json(QueryResponse { matches: s.service.query(&id, f.robot_id, f.timestamp, target, &opts).await? }))
+}
+
+#[derive(Serialize)]
+struct AddAndQueryResponse {
+    frame_id: u64,
+    matches: Vec<Match>,
+}
+
+async fn add_and_query(
+    State(s): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    req: Request,
+) -> Result<Json<AddAndQueryResponse>, ApiError> {
+    let (f, opts) = frame_input(read_fields(req).await?)?;
+    let (frame_id, matches) = s.service.add_and_query(&id, f, &opts).await?;
+    Ok(Json(AddAndQueryResponse { frame_id, matches }))
+}
+
+#[derive(Serialize)]
+struct JobCreated {
+    job_id: String,
+    status_url: String,
+}
+
+/// An offline sequence: multipart with many `image` files (in the order sent, or natural name
+/// order with `order=name`), or one tar archive (`archive` part or an application/x-tar body).
+async fn start_sequence(
+    State(s): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    req: Request,
+) -> Result<(StatusCode, Json<JobCreated>), ApiError> {
+    s.service.store.session(&id)?;
+    let seq = SequenceRequest::from_request(req).await?;
+    let job_id = s.jobs.start(s.service.clone(), id, seq)?;
+    Ok((StatusCode::ACCEPTED, Json(JobCreated { status_url: format!("/v1/jobs/{job_id}"), job_id })))
+}
+
+async fn job_status(State(s): State<Arc<AppState>>, Path(job_id): Path<String>) -> Result<Json<JobStatus>, ApiError> {
+    s.jobs.status(&job_id).map(Json).ok_or_else(|| ApiError::NotFound(format!("job '{job_id}' not found")))
 }

@@ -1,3 +1,7 @@
-//! Network APIs over the engine (HTTP now; gRPC joins here).
+//! Network APIs over the engine and the store: gRPC and HTTP, one shared service.
 pub mod error;
+pub mod grpc;
 pub mod http;
+pub mod jobs;
+pub mod server;
+pub mod service;

@@ -1,66 +1,100 @@
 use super::ModelArgs;
-use crate::api::http::{router, AppState};
-use crate::engine::{Engine, EngineConfig};
+use crate::api::server::{RunningServer, ServerConfig};
+use crate::engine::EngineConfig;
 use crate::model::preprocess::ImageLimits;
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::Arc;
 use std::time::Duration;
 
 #[derive(Args)]
 pub struct ServeArgs {
     #[command(flatten)]
     pub model: ModelArgs,
+    #[arg(long, env = "LOOPD_GRPC_ADDR", default_value = "127.0.0.1:50051")]
+    pub grpc_addr: SocketAddr,
     #[arg(long, env = "LOOPD_HTTP_ADDR", default_value = "127.0.0.1:8080")]
-    pub http_addr: String,
+    pub http_addr: SocketAddr,
     /// Where map sessions live (sled database).
     #[arg(long, env = "LOOPD_DATA_DIR", default_value = "data")]
     pub data_dir: PathBuf,
+    /// Most images per forward pass.
     #[arg(long, env = "LOOPD_MAX_BATCH", default_value_t = 32)]
     pub max_batch: usize,
+    /// Longest a frame waits for others to join its batch.
     #[arg(long, env = "LOOPD_MAX_DELAY_MS", default_value_t = 5)]
     pub max_delay_ms: u64,
+    /// Frames admitted at once (decoding, queued, running); beyond it: RESOURCE_EXHAUSTED / 429.
     #[arg(long, env = "LOOPD_QUEUE", default_value_t = 256)]
     pub queue_capacity: usize,
     #[arg(long, env = "LOOPD_MAX_IMAGE_BYTES", default_value_t = 16 << 20)]
     pub max_image_bytes: usize,
     #[arg(long, env = "LOOPD_MAX_IMAGE_PIXELS", default_value_t = 40_000_000)]
     pub max_image_pixels: u64,
+    /// Largest HTTP request body (offline sequence uploads).
+    #[arg(long, env = "LOOPD_MAX_BODY_BYTES", default_value_t = 512 << 20)]
+    pub max_body_bytes: usize,
+    /// Offline sequence jobs running at once.
+    #[arg(long, env = "LOOPD_MAX_JOBS", default_value_t = 2)]
+    pub max_jobs: usize,
     /// Threads decoding images at once (default: number of cores).
     #[arg(long, env = "LOOPD_DECODE_WORKERS")]
     pub decode_workers: Option<usize>,
 }
 
+impl ServeArgs {
+    pub fn server_config(&self) -> ServerConfig {
+        let defaults = EngineConfig::default();
+        ServerConfig {
+            grpc_addr: self.grpc_addr,
+            http_addr: self.http_addr,
+            data_dir: self.data_dir.clone(),
+            engine: EngineConfig {
+                max_batch: self.max_batch,
+                max_delay: Duration::from_millis(self.max_delay_ms),
+                queue_capacity: self.queue_capacity,
+                decode_workers: self.decode_workers.unwrap_or(defaults.decode_workers),
+                warm_up: true,
+            },
+            limits: ImageLimits {
+                max_bytes: self.max_image_bytes,
+                max_pixels: self.max_image_pixels,
+                ..Default::default()
+            },
+            max_body_bytes: self.max_body_bytes.max(self.max_image_bytes + (1 << 20)),
+            max_jobs: self.max_jobs,
+        }
+    }
+}
+
 pub fn run(a: ServeArgs) -> Result<ExitCode> {
-    std::fs::create_dir_all(&a.data_dir).with_context(|| format!("creating data dir {}", a.data_dir.display()))?;
-    let db = sled::open(a.data_dir.join("db")).with_context(|| format!("opening sled in {}", a.data_dir.display()))?;
     let model = a.model.load()?;
-    let defaults = EngineConfig::default();
-    let cfg = EngineConfig {
-        max_batch: a.max_batch,
-        max_delay: Duration::from_millis(a.max_delay_ms),
-        queue_capacity: a.queue_capacity,
-        decode_workers: a.decode_workers.unwrap_or(defaults.decode_workers),
-        warm_up: true,
-    };
-    let limits = ImageLimits { max_bytes: a.max_image_bytes, max_pixels: a.max_image_pixels, ..Default::default() };
-    let engine = Engine::start(model, cfg, limits)?;
-    let state = Arc::new(AppState { engine });
+    let cfg = a.server_config();
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
-        let listener =
-            tokio::net::TcpListener::bind(&a.http_addr).await.with_context(|| format!("binding {}", a.http_addr))?;
-        tracing::info!(addr = %listener.local_addr()?, data_dir = %a.data_dir.display(), "loopd serving HTTP");
-        axum::serve(listener, router(state))
-            .with_graceful_shutdown(async {
-                let _ = tokio::signal::ctrl_c().await;
-                tracing::info!("shutting down");
-            })
-            .await?;
-        anyhow::Ok(())
+        let server = RunningServer::start(cfg, model).await?;
+        wait_for_signal().await;
+        tracing::info!("shutting down: finishing acknowledged work");
+        server.shutdown().await
     })?;
-    db.flush()?;
     Ok(ExitCode::SUCCESS)
+}
+
+async fn wait_for_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(s) => s,
+            Err(_) => return std::future::pending().await,
+        };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = ctrl_c.await;
 }

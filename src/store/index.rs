@@ -48,6 +48,9 @@ pub struct SessionIndex {
     by_robot: Vec<Vec<u64>>,
 }
 
+/// Row values (rows x dim) from which a single query is split across threads.
+const PARALLEL_MIN_VALUES: usize = 8 << 20;
+
 /// Rows searched per chunk: big enough to amortise, small enough for threads to share work.
 const CHUNK_ROWS: usize = 4096;
 
@@ -149,7 +152,8 @@ impl SessionIndex {
         }
         let n = self.frames.len();
         let chunks: Vec<(usize, usize)> = (0..n).step_by(CHUNK_ROWS).map(|s| (s, (s + CHUNK_ROWS).min(n))).collect();
-        let threads = threads.clamp(1, chunks.len());
+        // Below a few MB of rows, starting threads costs more than it saves.
+        let threads = if n * self.dim < PARALLEL_MIN_VALUES { 1 } else { threads.clamp(1, chunks.len()) };
         let next = std::sync::atomic::AtomicUsize::new(0);
         let work = || {
             let mut heap = TopK::new(k);

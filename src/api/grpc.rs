@@ -1,0 +1,220 @@
+//! gRPC (tonic): `proto/loopd/v1/loopd.proto` translated onto `LoopService`.
+use super::error::ApiError;
+use super::service::{Content, CreateSession, FrameInput, LoopService, QueryOverrides, QueryTarget};
+use crate::store::index::Storage;
+use crate::store::query::{Match, Pose, Scope};
+use crate::store::SessionInfo;
+use std::pin::Pin;
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status, Streaming};
+
+pub mod pb {
+    tonic::include_proto!("loopd.v1");
+    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("loopd_descriptor");
+}
+
+pub use pb::loopd_server::LoopdServer;
+
+pub struct GrpcApi {
+    pub service: LoopService,
+}
+
+fn to_pose(p: Option<pb::Pose>) -> Option<Pose> {
+    p.map(|p| Pose { x: p.x, y: p.y, z: p.z, qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw })
+}
+
+fn from_pose(p: Option<Pose>) -> Option<pb::Pose> {
+    p.map(|p| pb::Pose { x: p.x, y: p.y, z: p.z, qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw })
+}
+
+fn overrides(o: Option<pb::QueryOptions>) -> Result<QueryOverrides, ApiError> {
+    let Some(o) = o else { return Ok(QueryOverrides::default()) };
+    let scope = match pb::Scope::try_from(o.scope) {
+        Ok(pb::Scope::Unspecified) => None,
+        Ok(pb::Scope::All) => Some(Scope::All),
+        Ok(pb::Scope::SameRobot) => Some(Scope::SameRobot),
+        Ok(pb::Scope::OtherRobots) => Some(Scope::OtherRobots),
+        Err(_) => return Err(ApiError::InvalidArgument(format!("unknown scope {}", o.scope))),
+    };
+    let pair = |a: Option<f64>, b: Option<f64>| {
+        (a.is_some() || b.is_some()).then(|| (a.unwrap_or(f64::MIN), b.unwrap_or(f64::MAX)))
+    };
+    let ids = (o.frame_id_from.is_some() || o.frame_id_to.is_some())
+        .then(|| (o.frame_id_from.unwrap_or(0), o.frame_id_to.unwrap_or(u64::MAX)));
+    Ok(QueryOverrides {
+        k: o.k.map(|k| k as usize),
+        min_score: o.min_score,
+        exclude_last_frames: o.exclude_last_frames.map(|n| n as usize),
+        exclude_last_seconds: o.exclude_last_seconds,
+        scope,
+        time_range: pair(o.time_from, o.time_to),
+        frame_id_range: ids,
+    })
+}
+
+fn storage_to_pb(s: Storage) -> i32 {
+    match s {
+        Storage::F16 => pb::Storage::F16 as i32,
+        Storage::F32 => pb::Storage::F32 as i32,
+    }
+}
+
+fn session_to_pb(i: SessionInfo) -> pb::Session {
+    pb::Session {
+        id: i.meta.id,
+        name: i.meta.name,
+        created: i.meta.created,
+        dim: i.meta.dim as u32,
+        descriptor_id: i.meta.descriptor_id,
+        storage: storage_to_pb(i.meta.storage),
+        frames: i.frames as u64,
+        robots: i.robots,
+        bytes_on_disk: i.bytes_on_disk,
+    }
+}
+
+fn matches_to_pb(m: Vec<Match>) -> Vec<pb::Match> {
+    m.into_iter()
+        .map(|m| pb::Match {
+            frame_id: m.frame_id,
+            score: m.score,
+            robot_id: m.robot_id,
+            timestamp: m.timestamp,
+            pose: from_pose(m.pose),
+        })
+        .collect()
+}
+
+fn frame_input(r: pb::AddFrameRequest) -> Result<(String, FrameInput, QueryOverrides), ApiError> {
+    let content = match r.content {
+        Some(pb::add_frame_request::Content::Image(b)) => Content::Image(b),
+        Some(pb::add_frame_request::Content::Descriptor(d)) => Content::Descriptor(d.values),
+        None => return Err(ApiError::InvalidArgument("a frame needs an image or a descriptor".into())),
+    };
+    let metadata = if r.metadata_json.is_empty() {
+        None
+    } else {
+        Some(
+            serde_json::from_str(&r.metadata_json)
+                .map_err(|e| ApiError::InvalidArgument(format!("metadata_json: {e}")))?,
+        )
+    };
+    if r.session_id.is_empty() {
+        return Err(ApiError::InvalidArgument("session_id is required".into()));
+    }
+    let opts = overrides(r.options)?;
+    let f = FrameInput {
+        robot_id: r.robot_id,
+        timestamp: r.timestamp,
+        frame_id: r.frame_id,
+        pose: to_pose(r.pose),
+        metadata,
+        content,
+    };
+    Ok((r.session_id, f, opts))
+}
+
+type FrameStream = Pin<Box<dyn Stream<Item = Result<pb::AddAndQueryResponse, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl pb::loopd_server::Loopd for GrpcApi {
+    async fn create_session(&self, req: Request<pb::CreateSessionRequest>) -> Result<Response<pb::Session>, Status> {
+        let r = req.into_inner();
+        let storage = match pb::Storage::try_from(r.storage) {
+            Ok(pb::Storage::F32) => Storage::F32,
+            Ok(_) => Storage::F16,
+            Err(_) => return Err(Status::invalid_argument(format!("unknown storage {}", r.storage))),
+        };
+        let create =
+            CreateSession { id: Some(r.id), name: r.name, storage, default_query: overrides(r.default_query)? };
+        Ok(Response::new(session_to_pb(self.service.create_session(create).await?)))
+    }
+
+    async fn get_session(&self, req: Request<pb::GetSessionRequest>) -> Result<Response<pb::Session>, Status> {
+        Ok(Response::new(session_to_pb(self.service.session(&req.into_inner().id)?)))
+    }
+
+    async fn list_sessions(
+        &self,
+        _: Request<pb::ListSessionsRequest>,
+    ) -> Result<Response<pb::ListSessionsResponse>, Status> {
+        Ok(Response::new(pb::ListSessionsResponse {
+            sessions: self.service.list_sessions().into_iter().map(session_to_pb).collect(),
+        }))
+    }
+
+    async fn delete_session(
+        &self,
+        req: Request<pb::DeleteSessionRequest>,
+    ) -> Result<Response<pb::DeleteSessionResponse>, Status> {
+        self.service.delete_session(&req.into_inner().id).await?;
+        Ok(Response::new(pb::DeleteSessionResponse {}))
+    }
+
+    async fn add_frame(&self, req: Request<pb::AddFrameRequest>) -> Result<Response<pb::AddFrameResponse>, Status> {
+        let (session, f, _) = frame_input(req.into_inner())?;
+        Ok(Response::new(pb::AddFrameResponse { frame_id: self.service.add_frame(&session, f).await? }))
+    }
+
+    async fn query(&self, req: Request<pb::QueryRequest>) -> Result<Response<pb::QueryResponse>, Status> {
+        let r = req.into_inner();
+        let target = match r.content {
+            Some(pb::query_request::Content::Image(b)) => QueryTarget::Content(Content::Image(b)),
+            Some(pb::query_request::Content::Descriptor(d)) => QueryTarget::Content(Content::Descriptor(d.values)),
+            Some(pb::query_request::Content::FrameId(id)) => QueryTarget::Frame(id),
+            None => return Err(Status::invalid_argument("a query needs an image, a descriptor or a frame_id")),
+        };
+        let at = (r.timestamp != 0.0).then_some(r.timestamp);
+        let m = self.service.query(&r.session_id, Some(r.robot_id), at, target, &overrides(r.options)?).await?;
+        Ok(Response::new(pb::QueryResponse { matches: matches_to_pb(m) }))
+    }
+
+    async fn add_and_query(
+        &self,
+        req: Request<pb::AddFrameRequest>,
+    ) -> Result<Response<pb::AddAndQueryResponse>, Status> {
+        let (session, f, opts) = frame_input(req.into_inner())?;
+        let (frame_id, m) = self.service.add_and_query(&session, f, &opts).await?;
+        Ok(Response::new(pb::AddAndQueryResponse { frame_id, matches: matches_to_pb(m), ..Default::default() }))
+    }
+
+    type StreamFramesStream = FrameStream;
+
+    async fn stream_frames(
+        &self,
+        req: Request<Streaming<pb::AddFrameRequest>>,
+    ) -> Result<Response<FrameStream>, Status> {
+        let mut inbound = req.into_inner();
+        let service = self.service.clone();
+        let (tx, rx) = tokio::sync::mpsc::channel(16);
+        tokio::spawn(async move {
+            // In order, one frame at a time: each answer refers to the map as it was just before.
+            while let Some(next) = inbound.next().await {
+                let reply = match next {
+                    Err(status) => {
+                        tracing::debug!(%status, "client stream ended with an error");
+                        break;
+                    }
+                    Ok(r) => match frame_input(r) {
+                        Err(e) => failed(e),
+                        Ok((session, f, opts)) => match service.add_and_query(&session, f, &opts).await {
+                            Ok((frame_id, m)) => {
+                                pb::AddAndQueryResponse { frame_id, matches: matches_to_pb(m), ..Default::default() }
+                            }
+                            Err(e) => failed(e),
+                        },
+                    },
+                };
+                if tx.send(Ok(reply)).await.is_err() {
+                    break; // the robot hung up
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
+    }
+}
+
+fn failed(e: ApiError) -> pb::AddAndQueryResponse {
+    let s = e.grpc_status();
+    pb::AddAndQueryResponse { error_code: s.code() as i32, error: s.message().to_string(), ..Default::default() }
+}

@@ -1,0 +1,259 @@
+//! Offline sequences: many images in order, embedded in batches, added to a session and
+//! searched for loops, as a background job whose progress can be polled.
+use super::error::ApiError;
+use super::service::{Content, FrameInput, LoopService, QueryOverrides};
+use crate::store::query::Scope;
+use axum::body::Bytes;
+use axum::extract::{FromRequest, Multipart, Request};
+use axum::http::header;
+use futures::StreamExt;
+use serde::Serialize;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+/// Most frames one job may hold (bounded memory); the body size limit applies as well.
+pub const MAX_JOB_FRAMES: usize = 100_000;
+const IMAGE_EXTENSIONS: [&str; 7] = ["jpg", "jpeg", "png", "bmp", "tif", "tiff", "webp"];
+
+pub struct SequenceRequest {
+    pub images: Vec<(String, Bytes)>,
+    pub robot_id: String,
+    pub min_score: f32,
+    pub exclude_last_frames: usize,
+}
+
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct LoopClosure {
+    pub query_index: usize,
+    pub query_name: String,
+    pub query_frame_id: u64,
+    pub match_index: usize,
+    pub match_name: String,
+    pub match_frame_id: u64,
+    pub score: f32,
+}
+
+#[derive(Clone, Debug, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    Running,
+    Done,
+    Failed,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct JobStatus {
+    pub job_id: String,
+    pub session_id: String,
+    pub state: JobState,
+    pub total: usize,
+    pub done: usize,
+    pub loops: Vec<LoopClosure>,
+    /// Frames that could not be used (bad image), by name.
+    pub errors: Vec<String>,
+}
+
+/// Natural order: "2.png" before "10.png".
+fn natural_key(s: &str) -> Vec<(u8, u64, String)> {
+    let mut out = Vec::new();
+    let mut chars = s.chars().peekable();
+    while let Some(&c) = chars.peek() {
+        let mut run = String::new();
+        let digit = c.is_ascii_digit();
+        while let Some(&c) = chars.peek().filter(|c| c.is_ascii_digit() == digit) {
+            run.push(c);
+            chars.next();
+        }
+        out.push(if digit { (0, run.parse().unwrap_or(u64::MAX), run) } else { (1, 0, run) });
+    }
+    out
+}
+
+fn is_image(name: &str) -> bool {
+    name.rsplit_once('.').is_some_and(|(_, e)| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+}
+
+fn untar(bytes: &[u8], out: &mut Vec<(String, Bytes)>) -> Result<(), ApiError> {
+    let bad = |e: std::io::Error| ApiError::InvalidArgument(format!("not a readable tar archive: {e}"));
+    let mut archive = tar::Archive::new(std::io::Cursor::new(bytes));
+    let mut found = Vec::new();
+    for entry in archive.entries().map_err(bad)? {
+        let mut entry = entry.map_err(bad)?;
+        let name = entry.path().map_err(bad)?.to_string_lossy().to_string();
+        if !entry.header().entry_type().is_file() || !is_image(&name) {
+            continue;
+        }
+        let mut data = Vec::with_capacity(entry.size() as usize);
+        std::io::Read::read_to_end(&mut entry, &mut data).map_err(bad)?;
+        found.push((name, Bytes::from(data)));
+    }
+    // An archive's own order is arbitrary: frames go in natural name order.
+    found.sort_by_cached_key(|(n, _)| natural_key(n));
+    out.extend(found);
+    Ok(())
+}
+
+impl SequenceRequest {
+    pub async fn from_request(req: Request) -> Result<Self, ApiError> {
+        let ctype = req.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
+        let axum::extract::Query(mut fields) = axum::extract::Query::<HashMap<String, String>>::try_from_uri(req.uri())
+            .map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+        let mut images = Vec::new();
+        if ctype.starts_with("multipart/form-data") {
+            let mut mp =
+                Multipart::from_request(req, &()).await.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+            while let Some(field) = mp.next_field().await.map_err(|e| ApiError::InvalidArgument(e.body_text()))? {
+                let name = field.name().unwrap_or("").to_string();
+                let file = field.file_name().unwrap_or("").to_string();
+                let data = field.bytes().await.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+                match name.as_str() {
+                    "image" => images.push((if file.is_empty() { format!("{}", images.len()) } else { file }, data)),
+                    "archive" => untar(&data, &mut images)?,
+                    _ => {
+                        let text = String::from_utf8(data.to_vec())
+                            .map_err(|_| ApiError::InvalidArgument(format!("field {name} is not text")))?;
+                        fields.insert(name, text);
+                    }
+                }
+            }
+        } else {
+            let body = Bytes::from_request(req, &()).await.map_err(|e| ApiError::TooLarge(e.body_text()))?;
+            untar(&body, &mut images)?;
+        }
+        if images.is_empty() {
+            return Err(ApiError::InvalidArgument(
+                "a sequence needs images: multipart 'image' files or a tar archive".into(),
+            ));
+        }
+        if images.len() > MAX_JOB_FRAMES {
+            return Err(ApiError::InvalidArgument(format!(
+                "{} frames; at most {MAX_JOB_FRAMES} per job",
+                images.len()
+            )));
+        }
+        let mut req = SequenceRequest { images, robot_id: "sequence".into(), min_score: 0.0, exclude_last_frames: 3 };
+        for (k, v) in fields {
+            let bad = || ApiError::InvalidArgument(format!("field {k}: bad value '{v}'"));
+            match k.as_str() {
+                "robot_id" if !v.is_empty() => req.robot_id = v,
+                "min_score" => req.min_score = v.parse().ok().filter(|s: &f32| s.is_finite()).ok_or_else(bad)?,
+                "exclude_last_frames" => req.exclude_last_frames = v.parse().map_err(|_| bad())?,
+                "order" if v == "name" => req.images.sort_by_cached_key(|(n, _)| natural_key(n)),
+                "order" if v == "sent" => {}
+                _ => return Err(bad()),
+            }
+        }
+        Ok(req)
+    }
+}
+
+#[derive(Default)]
+pub struct Jobs {
+    jobs: Mutex<HashMap<String, Arc<Mutex<JobStatus>>>>,
+    next: std::sync::atomic::AtomicU64,
+    pub max_running: usize,
+}
+
+impl Jobs {
+    pub fn new(max_running: usize) -> Self {
+        Self { max_running: max_running.max(1), ..Default::default() }
+    }
+
+    pub fn status(&self, id: &str) -> Option<JobStatus> {
+        Some(self.jobs.lock().expect("jobs lock").get(id)?.lock().expect("job lock").clone())
+    }
+
+    pub fn start(&self, service: LoopService, session: String, seq: SequenceRequest) -> Result<String, ApiError> {
+        let mut jobs = self.jobs.lock().expect("jobs lock");
+        let running = jobs.values().filter(|j| matches!(j.lock().expect("job lock").state, JobState::Running)).count();
+        if running >= self.max_running {
+            return Err(ApiError::Overloaded(format!("{running} sequence jobs running; at most {}", self.max_running)));
+        }
+        let id = format!("job-{}", self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1);
+        let status = Arc::new(Mutex::new(JobStatus {
+            job_id: id.clone(),
+            session_id: session.clone(),
+            state: JobState::Running,
+            total: seq.images.len(),
+            done: 0,
+            loops: Vec::new(),
+            errors: Vec::new(),
+        }));
+        jobs.insert(id.clone(), status.clone());
+        tokio::spawn(run(service, session, seq, status));
+        Ok(id)
+    }
+}
+
+async fn run(service: LoopService, session: String, seq: SequenceRequest, status: Arc<Mutex<JobStatus>>) {
+    let engine = service.engine.clone();
+    let width = engine.config().max_batch.max(1);
+    // Embedding runs ahead in batches (order kept); adding and searching go one frame at a time.
+    let mut embedded = futures::stream::iter(seq.images.into_iter().enumerate())
+        .map(|(i, (name, bytes))| {
+            let engine = engine.clone();
+            async move { (i, name, engine.embed_image(bytes, crate::model::network::Variant::FULL, None).await) }
+        })
+        .buffered(width);
+    let opts = QueryOverrides {
+        k: Some(1),
+        min_score: Some(seq.min_score),
+        exclude_last_frames: Some(seq.exclude_last_frames),
+        scope: Some(Scope::SameRobot),
+        ..Default::default()
+    };
+    let mut names: HashMap<u64, (usize, String)> = HashMap::new();
+    let mut failed = None;
+    while let Some((i, name, result)) = embedded.next().await {
+        let descriptor = match result {
+            Ok(d) => d,
+            Err(e) => {
+                let mut s = status.lock().expect("job lock");
+                s.errors.push(format!("{name}: {e}"));
+                s.done += 1;
+                continue;
+            }
+        };
+        let frame = FrameInput {
+            robot_id: seq.robot_id.clone(),
+            timestamp: i as f64,
+            frame_id: None,
+            pose: None,
+            metadata: Some(serde_json::json!({ "name": name, "index": i })),
+            content: Content::Descriptor(descriptor),
+        };
+        match service.add_and_query(&session, frame, &opts).await {
+            Ok((frame_id, matches)) => {
+                let mut s = status.lock().expect("job lock");
+                if let Some(m) = matches.first() {
+                    if let Some((mi, mname)) = names.get(&m.frame_id) {
+                        s.loops.push(LoopClosure {
+                            query_index: i,
+                            query_name: name.clone(),
+                            query_frame_id: frame_id,
+                            match_index: *mi,
+                            match_name: mname.clone(),
+                            match_frame_id: m.frame_id,
+                            score: m.score,
+                        });
+                    }
+                }
+                names.insert(frame_id, (i, name));
+                s.done += 1;
+            }
+            Err(e) => {
+                failed = Some(format!("{name}: {e}"));
+                break;
+            }
+        }
+    }
+    let mut s = status.lock().expect("job lock");
+    match failed {
+        Some(e) => {
+            s.errors.push(e);
+            s.state = JobState::Failed;
+        }
+        None => s.state = JobState::Done,
+    }
+    tracing::info!(job = %s.job_id, frames = s.done, loops = s.loops.len(), "sequence job finished");
+}

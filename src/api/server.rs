@@ -1,0 +1,100 @@
+//! One process, both APIs: gRPC (tonic) and HTTP (axum) over one engine and one store.
+use super::grpc::{pb, GrpcApi, LoopdServer};
+use super::http::{router, AppState};
+use super::jobs::Jobs;
+use super::service::LoopService;
+use crate::engine::{Engine, EngineConfig};
+use crate::model::preprocess::ImageLimits;
+use crate::model::Model;
+use crate::store::Store;
+use anyhow::{Context, Result};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+#[derive(Clone, Debug)]
+pub struct ServerConfig {
+    pub grpc_addr: SocketAddr,
+    pub http_addr: SocketAddr,
+    pub data_dir: PathBuf,
+    pub engine: EngineConfig,
+    pub limits: ImageLimits,
+    /// Largest HTTP body (sequence uploads are the big ones).
+    pub max_body_bytes: usize,
+    pub max_jobs: usize,
+}
+
+pub struct RunningServer {
+    pub grpc_addr: SocketAddr,
+    pub http_addr: SocketAddr,
+    pub service: LoopService,
+    shutdown: tokio::sync::watch::Sender<bool>,
+    tasks: Vec<tokio::task::JoinHandle<Result<()>>>,
+}
+
+impl RunningServer {
+    /// Binds both listeners (port 0 picks a free one) and starts serving.
+    pub async fn start(cfg: ServerConfig, model: Model) -> Result<Self> {
+        let store = Arc::new(
+            Store::open(&cfg.data_dir).with_context(|| format!("opening store in {}", cfg.data_dir.display()))?,
+        );
+        let engine = Engine::start(model, cfg.engine.clone(), cfg.limits)?;
+        let service = LoopService { engine, store };
+        let (shutdown, rx) = tokio::sync::watch::channel(false);
+
+        let http = tokio::net::TcpListener::bind(cfg.http_addr)
+            .await
+            .with_context(|| format!("binding HTTP {}", cfg.http_addr))?;
+        let grpc = tokio::net::TcpListener::bind(cfg.grpc_addr)
+            .await
+            .with_context(|| format!("binding gRPC {}", cfg.grpc_addr))?;
+        let (http_addr, grpc_addr) = (http.local_addr()?, grpc.local_addr()?);
+
+        let state = Arc::new(AppState { service: service.clone(), jobs: Jobs::new(cfg.max_jobs) });
+        let app = router(state, cfg.max_body_bytes);
+        let mut http_rx = rx.clone();
+        let http_task = tokio::spawn(async move {
+            axum::serve(http, app)
+                .with_graceful_shutdown(async move {
+                    let _ = http_rx.wait_for(|s| *s).await;
+                })
+                .await?;
+            Ok(())
+        });
+
+        let (health, health_service) = tonic_health::server::health_reporter();
+        health.set_serving::<LoopdServer<GrpcApi>>().await;
+        let reflection = tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+            .build_v1()?;
+        let api = LoopdServer::new(GrpcApi { service: service.clone() })
+            .max_decoding_message_size(cfg.limits.max_bytes + 64 * 1024)
+            .max_encoding_message_size(64 << 20);
+        let mut grpc_rx = rx;
+        let grpc_task = tokio::spawn(async move {
+            tonic::transport::Server::builder()
+                .add_service(health_service)
+                .add_service(reflection)
+                .add_service(api)
+                .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc), async move {
+                    let _ = grpc_rx.wait_for(|s| *s).await;
+                })
+                .await?;
+            Ok(())
+        });
+        tracing::info!(%http_addr, %grpc_addr, data_dir = %cfg.data_dir.display(), "loopd serving");
+        Ok(Self { grpc_addr, http_addr, service, shutdown, tasks: vec![http_task, grpc_task] })
+    }
+
+    /// Stops accepting, lets in-flight requests finish (their writes are acknowledged only
+    /// once durable), then flushes the store.
+    pub async fn shutdown(self) -> Result<()> {
+        let _ = self.shutdown.send(true);
+        for t in self.tasks {
+            t.await??;
+        }
+        self.service.store.flush()?;
+        Ok(())
+    }
+}
