@@ -4,5 +4,6 @@
 pub mod api;
 pub mod cli;
 pub mod engine;
+pub mod eval;
 pub mod model;
 pub mod store;

@@ -84,9 +84,11 @@ struct EmbedResponse {
 /// Raw image bytes in, unit descriptor out.
 async fn embed(
     State(s): State<Arc<AppState>>,
-    Query(q): Query<EmbedQuery>,
-    body: Bytes,
+    q: Result<Query<EmbedQuery>, axum::extract::rejection::QueryRejection>,
+    body: Result<Bytes, axum::extract::rejection::BytesRejection>,
 ) -> Result<Json<EmbedResponse>, ApiError> {
+    let Query(q) = q.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+    let body = body.map_err(|e| ApiError::TooLarge(e.body_text()))?;
     let variant = Variant { attention: q.attention.unwrap_or(true), fusion: q.fusion.unwrap_or(true) };
     let descriptor = s.service.engine.embed_image(body, variant, None).await?;
     Ok(Json(EmbedResponse { descriptor_id: s.service.engine.info().descriptor_id.clone(), descriptor }))

@@ -1,6 +1,7 @@
 //! Command-line interface: one file per subcommand.
 mod classify;
 mod embed;
+mod eval;
 mod images;
 mod serve;
 mod weights;
@@ -35,6 +36,8 @@ pub enum Command {
     Classify(classify::ClassifyArgs),
     /// The loop-closure descriptor of each image.
     Embed(embed::EmbedArgs),
+    /// Recall at 100% precision, PR curve and similarity matrix on a sequence with ground truth.
+    Eval(eval::EvalArgs),
 }
 
 /// Options shared by every command that runs the network.
@@ -82,5 +85,6 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Weights(c) => weights::run(c),
         Command::Classify(a) => classify::run(a),
         Command::Embed(a) => embed::run(a),
+        Command::Eval(a) => eval::run(a),
     }
 }

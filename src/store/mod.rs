@@ -91,11 +91,12 @@ pub fn normalize(descriptor: &mut [f32]) -> Result<(), StoreError> {
     if descriptor.iter().any(|v| !v.is_finite()) {
         return Err(StoreError::InvalidArgument("descriptor has non-finite values".into()));
     }
-    let norm = descriptor.iter().map(|v| v * v).sum::<f32>().sqrt();
-    if norm < 1e-12 {
-        return Err(StoreError::InvalidArgument("descriptor is all zeros".into()));
+    // f64: squares of large f32 values would overflow to infinity.
+    let norm = descriptor.iter().map(|&v| (v as f64) * (v as f64)).sum::<f64>().sqrt();
+    if !norm.is_finite() || norm < 1e-12 {
+        return Err(StoreError::InvalidArgument("descriptor is all zeros (or its norm is out of range)".into()));
     }
-    descriptor.iter_mut().for_each(|v| *v /= norm);
+    descriptor.iter_mut().for_each(|v| *v = (*v as f64 / norm) as f32);
     Ok(())
 }
 

@@ -1,0 +1,77 @@
+use super::ModelArgs;
+use crate::eval::run::{run as run_eval, EvalSpec};
+use crate::model::network::Variant;
+use anyhow::Result;
+use clap::Args;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Args)]
+pub struct EvalArgs {
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// Ordered image sequence (files in natural name order); the reference traversal when
+    /// --query-sequence is given.
+    #[arg(long)]
+    pub sequence: PathBuf,
+    /// A second traversal whose frames are matched against --sequence.
+    #[arg(long)]
+    pub query_sequence: Option<PathBuf>,
+    /// Ground truth: a MATLAB v5 .mat matrix, a CSV (query,ref pairs or query,"ref ref ..."), or
+    /// "aligned" (query i matches reference i, within --tolerance).
+    #[arg(long)]
+    pub gt: String,
+    /// For interleaved stereo ground truth (New College): 0 = left, 1 = right camera.
+    #[arg(long)]
+    pub camera: Option<usize>,
+    /// A match within this many frames of a true one counts as true.
+    #[arg(long, default_value_t = 0)]
+    pub tolerance: usize,
+    /// One sequence: frames this close to the query are never candidates.
+    #[arg(long, default_value_t = 0)]
+    pub exclude: usize,
+    #[arg(long)]
+    pub no_attention: bool,
+    #[arg(long)]
+    pub no_fusion: bool,
+    /// Print the report as JSON on stdout.
+    #[arg(long)]
+    pub json: bool,
+    /// Folder for report.json, pr_curve.png and similarity.png.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Only images whose file name contains this (e.g. "left_" for one camera of a stereo folder).
+    #[arg(long)]
+    pub filter: Option<String>,
+    /// Descriptor cache (a rerun with other search settings does not embed again).
+    #[arg(long, default_value = ".loopd-cache")]
+    pub cache_dir: PathBuf,
+}
+
+pub fn run(a: EvalArgs) -> Result<ExitCode> {
+    let model = a.model.load()?;
+    let spec = EvalSpec {
+        sequence: &a.sequence,
+        query_sequence: a.query_sequence.as_deref(),
+        gt: &a.gt,
+        camera: a.camera,
+        tolerance: a.tolerance,
+        exclude: a.exclude,
+        out: a.out.as_deref(),
+        filter: a.filter.as_deref(),
+    };
+    let variant = Variant { attention: !a.no_attention, fusion: !a.no_fusion };
+    let out = run_eval(model, &spec, &a.model.weights, variant, Some(&a.cache_dir))?;
+    if a.json {
+        println!("{}", serde_json::to_string(&out)?);
+    } else {
+        let r = &out.report;
+        println!("{} ({}), {} queries, {} with a loop", out.variant, out.descriptor_id, r.queries, r.positives);
+        println!(
+            "recall@100%precision {:.4} (threshold {:?})",
+            r.recall_at_100_precision, r.threshold_at_100_precision
+        );
+        println!("recall@1 {:.4}   average precision {:.4}", r.recall_at_1, r.average_precision);
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,67 @@
+//! PNG figures of an evaluation: the PR curve and the similarity matrix.
+use super::metrics::PrPoint;
+use anyhow::{anyhow, Result};
+use plotters::prelude::*;
+use std::path::Path;
+
+fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
+    anyhow!("plotting: {e}")
+}
+
+/// Precision against recall, one point per threshold, with R@100P marked in the title.
+pub fn pr_curve(path: &Path, curves: &[(String, Vec<PrPoint>)], title: &str) -> Result<()> {
+    let root = BitMapBackend::new(path, (800, 600)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(55)
+        .build_cartesian_2d(0f64..1.0, 0f64..1.02)
+        .map_err(err)?;
+    chart.configure_mesh().x_desc("recall").y_desc("precision").draw().map_err(err)?;
+    for (i, (name, pts)) in curves.iter().enumerate() {
+        let color = Palette99::pick(i).to_rgba();
+        let mut line: Vec<(f64, f64)> = vec![(0.0, 1.0)];
+        line.extend(pts.iter().map(|p| (p.recall, p.precision)));
+        chart
+            .draw_series(LineSeries::new(line, color.stroke_width(2)))
+            .map_err(err)?
+            .label(name.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+    }
+    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(err)?;
+    root.present().map_err(err)?;
+    Ok(())
+}
+
+/// Query x reference cosine similarities (rows: queries), max-pooled down to at most 800 pixels
+/// a side; brighter is more similar. Ground-truth loops are drawn as green dots when given.
+pub fn similarity(path: &Path, scores: &[f32], rows: usize, cols: usize, truth: &[(usize, usize)]) -> Result<()> {
+    let (w, h) = (cols.clamp(1, 800), rows.clamp(1, 800));
+    let root = BitMapBackend::new(path, (w as u32, h as u32)).into_drawing_area();
+    root.fill(&BLACK).map_err(err)?;
+    let (lo, hi) = scores.iter().fold((f32::MAX, f32::MIN), |(a, b), &s| (a.min(s), b.max(s)));
+    let span = (hi - lo).max(1e-6);
+    let mut pooled = vec![f32::MIN; w * h];
+    for r in 0..rows {
+        for c in 0..cols {
+            let cell = &mut pooled[(r * h / rows) * w + c * w / cols];
+            *cell = cell.max(scores[r * cols + c]);
+        }
+    }
+    for (i, &v) in pooled.iter().enumerate() {
+        let t = ((v - lo) / span).clamp(0.0, 1.0);
+        // black -> red -> yellow -> white
+        let (r, g, b) = ((3.0 * t).min(1.0), (3.0 * t - 1.0).clamp(0.0, 1.0), (3.0 * t - 2.0).clamp(0.0, 1.0));
+        let color = RGBColor((r * 255.0) as u8, (g * 255.0) as u8, (b * 255.0) as u8);
+        root.draw_pixel(((i % w) as i32, (i / w) as i32), &color).map_err(err)?;
+    }
+    for &(q, r) in truth {
+        if q < rows && r < cols {
+            root.draw_pixel(((r * w / cols) as i32, (q * h / rows) as i32), &GREEN).map_err(err)?;
+        }
+    }
+    root.present().map_err(err)?;
+    Ok(())
+}

@@ -1,0 +1,226 @@
+//! `loopd eval`: embed a sequence (or two traversals) through the engine, search with the
+//! store's index, score against the ground truth, write the report and figures.
+use super::gt::GroundTruth;
+use super::metrics::{evaluate, QueryResult, Report};
+use super::plots;
+use crate::engine::{Engine, EngineConfig};
+use crate::model::network::Variant;
+use crate::model::preprocess::ImageLimits;
+use crate::model::Model;
+use crate::store::index::{SessionIndex, Storage};
+use crate::store::query::LoopQuery;
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+const IMAGE_EXTENSIONS: [&str; 7] = ["jpg", "jpeg", "png", "bmp", "tif", "tiff", "webp"];
+
+/// Natural order ("2.png" before "10.png").
+fn natural_key(s: &str) -> Vec<(bool, u64, String)> {
+    let mut out = Vec::new();
+    let mut rest = s;
+    while let Some(c) = rest.chars().next() {
+        let digit = c.is_ascii_digit();
+        let end = rest.find(|ch: char| ch.is_ascii_digit() != digit).unwrap_or(rest.len());
+        let (run, tail) = rest.split_at(end);
+        out.push((!digit, if digit { run.parse().unwrap_or(u64::MAX) } else { 0 }, run.to_string()));
+        rest = tail;
+    }
+    out
+}
+
+/// Image files of a folder in natural name order (only names containing `filter`, if given).
+pub fn list_images(dir: &Path, filter: Option<&str>) -> Result<Vec<PathBuf>> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+        })
+        .filter(|p| filter.is_none_or(|f| p.file_name().is_some_and(|n| n.to_string_lossy().contains(f))))
+        .collect();
+    files.sort_by_cached_key(|p| {
+        natural_key(&p.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default())
+    });
+    if files.is_empty() {
+        bail!("no images in {}", dir.display());
+    }
+    Ok(files)
+}
+
+/// FNV-1a: a cache key that stays the same across builds.
+fn fnv(bytes: &[u8], mut h: u64) -> u64 {
+    for &b in bytes {
+        h = (h ^ b as u64).wrapping_mul(0x100000001b3);
+    }
+    h
+}
+
+fn cache_key(files: &[PathBuf], descriptor_id: &str, variant: Variant, weights: &Path) -> u64 {
+    let mut h = fnv(format!("{descriptor_id}|{}|{}", variant.name(), weights.display()).as_bytes(), 0xcbf29ce484222325);
+    for f in files {
+        let meta = std::fs::metadata(f).ok();
+        let stamp = meta.as_ref().map(|m| {
+            (
+                m.len(),
+                m.modified()
+                    .ok()
+                    .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                    .map_or(0, |d| d.as_nanos()),
+            )
+        });
+        h = fnv(format!("{}|{stamp:?}", f.display()).as_bytes(), h);
+    }
+    h
+}
+
+pub struct EmbedSetup<'a> {
+    pub weights: &'a Path,
+    pub variant: Variant,
+    pub cache_dir: Option<&'a Path>,
+    pub max_batch: usize,
+}
+
+/// Descriptors of `files` (rows in order) through the engine, from the cache when possible.
+pub fn embed_files(engine: &Engine, files: &[PathBuf], setup: &EmbedSetup, label: &str) -> Result<Vec<Vec<f32>>> {
+    let key = cache_key(files, &engine.info().descriptor_id, setup.variant, setup.weights);
+    let cache = setup.cache_dir.map(|d| d.join(format!("{key:016x}.f32")));
+    if let Some(bytes) = cache.as_ref().and_then(|p| std::fs::read(p).ok()) {
+        let values: Vec<f32> = bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        if values.len().is_multiple_of(files.len()) && !values.is_empty() {
+            tracing::info!(label, frames = files.len(), "descriptors from cache");
+            return Ok(values.chunks(values.len() / files.len()).map(<[f32]>::to_vec).collect());
+        }
+    }
+    let bar = ProgressBar::new(files.len() as u64)
+        .with_style(ProgressStyle::with_template("{msg} {pos}/{len} {wide_bar} {per_sec} eta {eta}").expect("template"))
+        .with_message(format!("embedding {label}"));
+    let rt = tokio::runtime::Runtime::new()?;
+    let variant = setup.variant;
+    let out: Vec<Vec<f32>> = rt.block_on(async {
+        use futures::StreamExt;
+        let stream = futures::stream::iter(files.iter().cloned()).map(|path| {
+            let (engine, bar) = (engine.clone(), bar.clone());
+            async move {
+                let bytes = tokio::fs::read(&path).await.with_context(|| format!("reading {}", path.display()))?;
+                let d = engine
+                    .embed_image(bytes.into(), variant, None)
+                    .await
+                    .with_context(|| path.display().to_string())?;
+                bar.inc(1);
+                anyhow::Ok(d)
+            }
+        });
+        stream.buffered(setup.max_batch * 2).collect::<Vec<_>>().await.into_iter().collect::<Result<Vec<_>>>()
+    })?;
+    bar.finish_and_clear();
+    if let Some(p) = cache {
+        std::fs::create_dir_all(p.parent().unwrap_or(Path::new(".")))?;
+        let bytes: Vec<u8> = out.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
+        std::fs::write(&p, bytes)?;
+    }
+    Ok(out)
+}
+
+pub struct EvalSpec<'a> {
+    pub sequence: &'a Path,
+    pub query_sequence: Option<&'a Path>,
+    pub gt: &'a str,
+    pub camera: Option<usize>,
+    pub tolerance: usize,
+    pub exclude: usize,
+    pub out: Option<&'a Path>,
+    pub filter: Option<&'a str>,
+}
+
+#[derive(Serialize)]
+pub struct EvalOutput {
+    pub descriptor_id: String,
+    pub variant: String,
+    pub sequence: String,
+    pub query_sequence: Option<String>,
+    pub frames: usize,
+    pub query_frames: usize,
+    pub tolerance: usize,
+    pub exclude: usize,
+    #[serde(flatten)]
+    pub report: Report,
+}
+
+/// Runs one evaluation with an already started engine.
+pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) -> Result<EvalOutput> {
+    let refs = list_images(spec.sequence, spec.filter)?;
+    let queries = spec.query_sequence.map(|q| list_images(q, spec.filter)).transpose()?;
+    let ref_desc = embed_files(engine, &refs, setup, "reference")?;
+    let query_desc = match &queries {
+        Some(q) => Some(embed_files(engine, q, setup, "query")?),
+        None => None,
+    };
+    let nq = queries.as_ref().map_or(refs.len(), Vec::len);
+    let gt = GroundTruth::load(spec.gt, spec.camera, nq.min(refs.len()))?;
+    // The store's index and search: the same code that answers robots.
+    let dim = ref_desc.first().map_or(0, Vec::len);
+    let mut index = SessionIndex::new(dim, Storage::F32);
+    for (i, d) in ref_desc.iter().enumerate() {
+        index.push(i as u64, "ref", i as f64, None, d);
+    }
+    let results: Vec<QueryResult> = (0..nq)
+        .map(|i| {
+            let (q, range) = match &query_desc {
+                Some(qd) => (&qd[i], None),
+                // One sequence: only earlier frames outside the exclusion window.
+                None if i > spec.exclude => (&ref_desc[i], Some((0, (i - spec.exclude - 1) as u64))),
+                None => return QueryResult { query: i, best: None },
+            };
+            let opts = LoopQuery { k: 1, frame_id_range: range, ..Default::default() };
+            let best = index.search(q, &opts, 1).first().map(|m| (m.frame_id as usize, m.score));
+            QueryResult { query: i, best }
+        })
+        .collect();
+    let report = evaluate(&results, &gt, spec.tolerance);
+    let out = EvalOutput {
+        descriptor_id: engine.info().descriptor_id.clone(),
+        variant: setup.variant.name().to_string(),
+        sequence: spec.sequence.display().to_string(),
+        query_sequence: spec.query_sequence.map(|p| p.display().to_string()),
+        frames: refs.len(),
+        query_frames: nq,
+        tolerance: spec.tolerance,
+        exclude: spec.exclude,
+        report,
+    };
+    if let Some(dir) = spec.out {
+        std::fs::create_dir_all(dir)?;
+        std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(&out)?)?;
+        let title = format!(
+            "{} — R@100P {:.3}, AP {:.3}",
+            out.variant, out.report.recall_at_100_precision, out.report.average_precision
+        );
+        plots::pr_curve(&dir.join("pr_curve.png"), &[(out.variant.clone(), out.report.pr_curve.clone())], &title)?;
+        let qd = query_desc.as_ref().unwrap_or(&ref_desc);
+        let scores: Vec<f32> = qd
+            .iter()
+            .flat_map(|q| ref_desc.iter().map(move |r| q.iter().zip(r).map(|(a, b)| a * b).sum::<f32>()))
+            .collect();
+        let truth: Vec<(usize, usize)> = gt.loops.iter().flat_map(|(&q, rs)| rs.iter().map(move |&r| (q, r))).collect();
+        plots::similarity(&dir.join("similarity.png"), &scores, qd.len(), ref_desc.len(), &truth)?;
+    }
+    Ok(out)
+}
+
+/// Loads the model, starts an engine and evaluates.
+pub fn run(
+    model: Model,
+    spec: &EvalSpec,
+    weights: &Path,
+    variant: Variant,
+    cache_dir: Option<&Path>,
+) -> Result<EvalOutput> {
+    let cfg = EngineConfig { max_batch: 16, warm_up: false, ..Default::default() };
+    let setup = EmbedSetup { weights, variant, cache_dir, max_batch: cfg.max_batch };
+    let engine = Engine::start(model, cfg, ImageLimits::default())?;
+    evaluate_sequences(&engine, spec, &setup)
+}
