@@ -128,6 +128,9 @@ impl LoopService {
         if f.robot_id.is_empty() {
             return Err(ApiError::InvalidArgument("robot_id is required".into()));
         }
+        if f.metadata.as_ref().is_some_and(|m| !m.is_object()) {
+            return Err(ApiError::InvalidArgument("metadata must be a JSON object".into()));
+        }
         Ok(())
     }
 
