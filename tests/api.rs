@@ -330,4 +330,30 @@ async fn offline_sequence_job_finds_the_desk_loop() {
     let best = loops.iter().max_by(|a, b| a["score"].as_f64().partial_cmp(&b["score"].as_f64()).unwrap()).unwrap();
     assert_eq!((best["query_name"].as_str(), best["match_name"].as_str()), (Some("10.png"), Some("1.png")), "{status}");
     assert_eq!(http.get(url("/v1/jobs/job-999")).send().await.unwrap().status(), 404);
+    // The same session evaluated live over gRPC: frame ids 0..9 are the sequence in name order.
+    let grpc = s.grpc.trim_start_matches("http://").to_string();
+    let gt = root().join("tests/gt/desk.csv");
+    let out = tokio::task::spawn_blocking(move || {
+        loopd_bin()
+            .args([
+                "eval",
+                "--server",
+                &grpc,
+                "--session",
+                "desk-seq",
+                "--gt",
+                gt.to_str().unwrap(),
+                "--exclude",
+                "2",
+                "--json",
+            ])
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!((report["frames"].as_u64(), report["positives"].as_u64()), (Some(10), Some(1)), "{report}");
+    assert_eq!(report["recall_at_1"], 1.0, "{report}");
 }

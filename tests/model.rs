@@ -137,3 +137,38 @@ fn rust_matches_the_pytorch_reference_with_random_heads() {
     let report: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
     assert_eq!(report["max_abs_diff"].as_object().unwrap().len(), 4);
 }
+
+#[test]
+fn stride_layouts_and_aspect_preserving_resize() {
+    use loopd::model::config::{ResizeMode, StrideLayout};
+    // Same random weights, the two stride placements: both run, and they differ.
+    let mut cfg = ModelConfig::default();
+    let v1 = Model::new(cfg.clone(), Device::Cpu, DType::F32).unwrap();
+    v1.randomize(11, false);
+    cfg.stride_layout = StrideLayout::V15;
+    let v15 = Model::new(cfg.clone(), Device::Cpu, DType::F32).unwrap();
+    v15.randomize(11, false);
+    let inputs = photo_inputs(&v1);
+    let (a, b) =
+        (v1.descriptors(&inputs[..1], Variant::FULL).unwrap(), v15.descriptors(&inputs[..1], Variant::FULL).unwrap());
+    assert_eq!(a.size(), vec![1, 2048]);
+    assert!(f64::try_from((a - b).abs().max()).unwrap() > 1e-3);
+    // Keep the aspect ratio: a 768x576 photo fits 224x224 as 224x168, and still embeds.
+    cfg.preprocess.resize = ResizeMode::Keep;
+    let keep = Model::new(cfg, Device::Cpu, DType::F32).unwrap();
+    let bytes = std::fs::read(data("photos/dog.jpg")).unwrap();
+    let x = loopd::model::preprocess::prepare(&bytes, &Default::default(), &keep.config.preprocess).unwrap();
+    assert_eq!(x.size(), vec![3, 168, 224]);
+    assert_eq!(keep.descriptors(&[x], Variant::FULL).unwrap().size(), vec![1, 2048]);
+}
+
+#[test]
+fn half_precision_is_refused_on_cpu_with_a_clear_message() {
+    let out = loopd_bin()
+        .args(["embed", "--dtype", "f16", "--device", "cpu", data("photos/dog.jpg").to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("needs a CUDA device") && !err.contains("panicked"), "{err}");
+}

@@ -12,8 +12,14 @@ pub struct EvalArgs {
     pub model: ModelArgs,
     /// Ordered image sequence (files in natural name order); the reference traversal when
     /// --query-sequence is given.
+    #[arg(long, required_unless_present = "server")]
+    pub sequence: Option<PathBuf>,
+    /// Evaluate a live server's session instead (gRPC address, e.g. 127.0.0.1:50051); its frame
+    /// ids must be 0..n-1 in sequence order.
+    #[arg(long, requires = "session")]
+    pub server: Option<String>,
     #[arg(long)]
-    pub sequence: PathBuf,
+    pub session: Option<String>,
     /// A second traversal whose frames are matched against --sequence.
     #[arg(long)]
     pub query_sequence: Option<PathBuf>,
@@ -49,9 +55,32 @@ pub struct EvalArgs {
 }
 
 pub fn run(a: EvalArgs) -> Result<ExitCode> {
+    if let (Some(server), Some(session)) = (&a.server, &a.session) {
+        let rt = tokio::runtime::Runtime::new()?;
+        let (frames, report) = rt.block_on(crate::eval::remote::evaluate_session(
+            server,
+            session,
+            &a.gt,
+            a.camera,
+            a.tolerance,
+            a.exclude,
+        ))?;
+        let mut out = serde_json::to_value(&report)?;
+        for (k, v) in [
+            ("server", serde_json::json!(server)),
+            ("session", session.as_str().into()),
+            ("frames", frames.into()),
+            ("exclude", a.exclude.into()),
+        ] {
+            out[k] = v;
+        }
+        println!("{}", if a.json { out.to_string() } else { serde_json::to_string_pretty(&out)? });
+        return Ok(ExitCode::SUCCESS);
+    }
+    let Some(sequence) = a.sequence.as_deref() else { anyhow::bail!("--sequence or --server is required") };
     let model = a.model.load()?;
     let spec = EvalSpec {
-        sequence: &a.sequence,
+        sequence,
         query_sequence: a.query_sequence.as_deref(),
         gt: &a.gt,
         camera: a.camera,

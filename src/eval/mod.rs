@@ -3,4 +3,5 @@ pub mod gt;
 pub mod matfile;
 pub mod metrics;
 pub mod plots;
+pub mod remote;
 pub mod run;

@@ -1,0 +1,60 @@
+//! `loopd eval --server`: the protocol run against a live server's session over gRPC, so the
+//! numbers come from the very engine and index that serve the robots.
+//!
+//! The session's frames must be one sequence with frame ids 0..n-1 in order (what the offline
+//! sequence job and a single robot with server-assigned ids produce); ground-truth indices refer
+//! to that order.
+use super::gt::GroundTruth;
+use super::metrics::{evaluate, QueryResult, Report};
+use crate::api::grpc::pb;
+use anyhow::{bail, Context, Result};
+
+pub async fn evaluate_session(
+    server: &str,
+    session: &str,
+    gt: &str,
+    camera: Option<usize>,
+    tolerance: usize,
+    exclude: usize,
+) -> Result<(usize, Report)> {
+    let url = if server.starts_with("http") { server.to_string() } else { format!("http://{server}") };
+    let mut client =
+        pb::loopd_client::LoopdClient::connect(url.clone()).await.with_context(|| format!("connecting to {url}"))?;
+    let info = client.get_session(pb::GetSessionRequest { id: session.into() }).await?.into_inner();
+    let n = info.frames as usize;
+    if n == 0 {
+        bail!("session '{session}' has no frames");
+    }
+    let gt = GroundTruth::load(gt, camera, n)?;
+    let bar = indicatif::ProgressBar::new(n as u64);
+    let mut results = Vec::with_capacity(n);
+    for i in 0..n {
+        bar.inc(1);
+        if i <= exclude {
+            results.push(QueryResult { query: i, best: None });
+            continue;
+        }
+        let options = pb::QueryOptions {
+            k: Some(1),
+            frame_id_from: Some(0),
+            frame_id_to: Some((i - exclude - 1) as u64),
+            scope: pb::Scope::All as i32,
+            ..Default::default()
+        };
+        let req = pb::QueryRequest {
+            session_id: session.into(),
+            content: Some(pb::query_request::Content::FrameId(i as u64)),
+            options: Some(options),
+            ..Default::default()
+        };
+        let m = client
+            .query(req)
+            .await
+            .with_context(|| format!("querying frame {i} (frame ids must be 0..{n})"))?
+            .into_inner()
+            .matches;
+        results.push(QueryResult { query: i, best: m.first().map(|m| (m.frame_id as usize, m.score)) });
+    }
+    bar.finish_and_clear();
+    Ok((n, evaluate(&results, &gt, tolerance)))
+}
