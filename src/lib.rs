@@ -5,5 +5,6 @@ pub mod api;
 pub mod cli;
 pub mod engine;
 pub mod eval;
+pub mod files;
 pub mod model;
 pub mod store;

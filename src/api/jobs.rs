@@ -2,6 +2,7 @@
 //! searched for loops, as a background job whose progress can be polled.
 use super::error::ApiError;
 use super::service::{Content, FrameInput, LoopService, QueryOverrides};
+use crate::files::{is_image, natural_key};
 use crate::store::query::Scope;
 use axum::body::Bytes;
 use axum::extract::{FromRequest, Multipart, Request};
@@ -13,7 +14,6 @@ use std::sync::{Arc, Mutex};
 
 /// Most frames one job may hold (bounded memory); the body size limit applies as well.
 pub const MAX_JOB_FRAMES: usize = 100_000;
-const IMAGE_EXTENSIONS: [&str; 7] = ["jpg", "jpeg", "png", "bmp", "tif", "tiff", "webp"];
 
 pub struct SequenceRequest {
     pub images: Vec<(String, Bytes)>,
@@ -51,26 +51,6 @@ pub struct JobStatus {
     pub loops: Vec<LoopClosure>,
     /// Frames that could not be used (bad image), by name.
     pub errors: Vec<String>,
-}
-
-/// Natural order: "2.png" before "10.png".
-fn natural_key(s: &str) -> Vec<(u8, u64, String)> {
-    let mut out = Vec::new();
-    let mut chars = s.chars().peekable();
-    while let Some(&c) = chars.peek() {
-        let mut run = String::new();
-        let digit = c.is_ascii_digit();
-        while let Some(&c) = chars.peek().filter(|c| c.is_ascii_digit() == digit) {
-            run.push(c);
-            chars.next();
-        }
-        out.push(if digit { (0, run.parse().unwrap_or(u64::MAX), run) } else { (1, 0, run) });
-    }
-    out
-}
-
-fn is_image(name: &str) -> bool {
-    name.rsplit_once('.').is_some_and(|(_, e)| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
 }
 
 fn untar(bytes: &[u8], out: &mut Vec<(String, Bytes)>) -> Result<(), ApiError> {

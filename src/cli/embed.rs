@@ -1,5 +1,4 @@
-use super::{images, ModelArgs};
-use crate::model::network::Variant;
+use super::{images, ModelArgs, VariantArgs};
 use crate::model::rows;
 use anyhow::Result;
 use clap::Args;
@@ -11,12 +10,8 @@ use std::process::ExitCode;
 pub struct EmbedArgs {
     #[command(flatten)]
     pub model: ModelArgs,
-    /// Leave out the attention modules (paper's ablation).
-    #[arg(long)]
-    pub no_attention: bool,
-    /// Leave out the layer1 -> layer4 fusion (paper's ablation).
-    #[arg(long)]
-    pub no_fusion: bool,
+    #[command(flatten)]
+    pub variant: VariantArgs,
     /// JSON lines: {"path": ..., "descriptor": [...]} per image.
     #[arg(long)]
     pub json: bool,
@@ -29,7 +24,7 @@ pub struct EmbedArgs {
 
 pub fn run(a: EmbedArgs) -> Result<ExitCode> {
     let model = a.model.load()?;
-    let variant = Variant { attention: !a.no_attention, fusion: !a.no_fusion };
+    let variant = a.variant.variant();
     let mut failed = false;
     let mut ok = Vec::new();
     for path in &a.images {

@@ -1,6 +1,5 @@
-use super::ModelArgs;
+use super::{ModelArgs, VariantArgs};
 use crate::eval::run::{run as run_eval, EvalSpec};
-use crate::model::network::Variant;
 use anyhow::Result;
 use clap::Args;
 use std::path::PathBuf;
@@ -36,10 +35,8 @@ pub struct EvalArgs {
     /// One sequence: frames this close to the query are never candidates.
     #[arg(long, default_value_t = 0)]
     pub exclude: usize,
-    #[arg(long)]
-    pub no_attention: bool,
-    #[arg(long)]
-    pub no_fusion: bool,
+    #[command(flatten)]
+    pub variant: VariantArgs,
     /// Print the report as JSON on stdout.
     #[arg(long)]
     pub json: bool,
@@ -89,7 +86,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         out: a.out.as_deref(),
         filter: a.filter.as_deref(),
     };
-    let variant = Variant { attention: !a.no_attention, fusion: !a.no_fusion };
+    let variant = a.variant.variant();
     let out = run_eval(model, &spec, &a.model.weights, variant, Some(&a.cache_dir))?;
     if a.json {
         println!("{}", serde_json::to_string(&out)?);

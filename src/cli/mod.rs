@@ -79,6 +79,23 @@ impl ModelArgs {
     }
 }
 
+/// The paper's ablation switches, for commands that compute descriptors.
+#[derive(Args, Clone, Copy, Debug)]
+pub struct VariantArgs {
+    /// Leave out the attention modules.
+    #[arg(long)]
+    pub no_attention: bool,
+    /// Leave out the layer1 -> layer4 fusion.
+    #[arg(long)]
+    pub no_fusion: bool,
+}
+
+impl VariantArgs {
+    pub fn variant(&self) -> crate::model::network::Variant {
+        crate::model::network::Variant { attention: !self.no_attention, fusion: !self.no_fusion }
+    }
+}
+
 pub fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::Serve(a) => serve::run(a),

@@ -14,32 +14,14 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
-const IMAGE_EXTENSIONS: [&str; 7] = ["jpg", "jpeg", "png", "bmp", "tif", "tiff", "webp"];
-
-/// Natural order ("2.png" before "10.png").
-fn natural_key(s: &str) -> Vec<(bool, u64, String)> {
-    let mut out = Vec::new();
-    let mut rest = s;
-    while let Some(c) = rest.chars().next() {
-        let digit = c.is_ascii_digit();
-        let end = rest.find(|ch: char| ch.is_ascii_digit() != digit).unwrap_or(rest.len());
-        let (run, tail) = rest.split_at(end);
-        out.push((!digit, if digit { run.parse().unwrap_or(u64::MAX) } else { 0 }, run.to_string()));
-        rest = tail;
-    }
-    out
-}
+use crate::files::{is_image, natural_key};
 
 /// Image files of a folder in natural name order (only names containing `filter`, if given).
 pub fn list_images(dir: &Path, filter: Option<&str>) -> Result<Vec<PathBuf>> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
         .with_context(|| format!("reading {}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.extension()
-                .and_then(|e| e.to_str())
-                .is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
-        })
+        .filter(|p| p.file_name().is_some_and(|n| is_image(&n.to_string_lossy())))
         .filter(|p| filter.is_none_or(|f| p.file_name().is_some_and(|n| n.to_string_lossy().contains(f))))
         .collect();
     files.sort_by_cached_key(|p| {
