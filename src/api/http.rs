@@ -20,7 +20,13 @@ pub struct AppState {
     pub jobs: Jobs,
 }
 
+/// `max_body_bytes` bounds sequence uploads only; every other route takes at most one image
+/// (plus form fields), so a client cannot make the server buffer a huge body there.
 pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
+    let frame_body = state.service.engine.info().limits.max_bytes + (1 << 20);
+    let sequences = Router::new()
+        .route("/v1/sessions/{id}/sequences", post(start_sequence))
+        .layer(DefaultBodyLimit::max(max_body_bytes));
     Router::new()
         .route("/healthz", get(|| async { "ok" }))
         .route("/readyz", get(|| async { "ready" }))
@@ -33,9 +39,9 @@ pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
         .route("/v1/sessions/{id}/frames/{frame_id}", get(get_frame))
         .route("/v1/sessions/{id}/query", post(query))
         .route("/v1/sessions/{id}/add_and_query", post(add_and_query))
-        .route("/v1/sessions/{id}/sequences", post(start_sequence))
         .route("/v1/jobs/{job_id}", get(job_status))
-        .layer(DefaultBodyLimit::max(max_body_bytes))
+        .layer(DefaultBodyLimit::max(frame_body))
+        .merge(sequences)
         .with_state(state)
 }
 
@@ -98,7 +104,7 @@ async fn create_session(
     State(s): State<Arc<AppState>>,
     body: Result<Json<CreateSession>, axum::extract::rejection::JsonRejection>,
 ) -> Result<(StatusCode, Json<SessionInfo>), ApiError> {
-    let Json(req) = body.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+    let Json(req) = body.map_err(json_error)?;
     Ok((StatusCode::CREATED, Json(s.service.create_session(req).await?)))
 }
 
@@ -179,8 +185,7 @@ fn fields_from_text(map: HashMap<String, String>, image: Option<Bytes>) -> Resul
 async fn read_fields(req: Request) -> Result<FrameFields, ApiError> {
     let ctype = req.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
     if ctype.starts_with("application/json") {
-        let Json(f) =
-            Json::<FrameFields>::from_request(req, &()).await.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+        let Json(f) = Json::<FrameFields>::from_request(req, &()).await.map_err(json_error)?;
         return Ok(f);
     }
     if ctype.starts_with("multipart/form-data") {
@@ -200,6 +205,14 @@ async fn read_fields(req: Request) -> Result<FrameFields, ApiError> {
         .map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
     let body = Bytes::from_request(req, &()).await.map_err(|e| ApiError::TooLarge(e.body_text()))?;
     fields_from_text(map, (!body.is_empty()).then_some(body))
+}
+
+fn json_error(e: axum::extract::rejection::JsonRejection) -> ApiError {
+    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+        ApiError::TooLarge(e.body_text())
+    } else {
+        ApiError::InvalidArgument(e.body_text())
+    }
 }
 
 fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
