@@ -12,6 +12,9 @@ use serde::Serialize;
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
+/// Finished jobs whose status stays available.
+const KEPT_JOBS: usize = 100;
+
 /// Most frames one job may hold (bounded memory); the body size limit applies as well.
 pub const MAX_JOB_FRAMES: usize = 100_000;
 
@@ -148,6 +151,18 @@ impl Jobs {
         let running = jobs.values().filter(|j| matches!(j.lock().expect("job lock").state, JobState::Running)).count();
         if running >= self.max_running {
             return Err(ApiError::Overloaded(format!("{running} sequence jobs running; at most {}", self.max_running)));
+        }
+        // Finished jobs are kept for polling, the oldest dropped beyond KEPT_JOBS (bounded memory).
+        if jobs.len() >= KEPT_JOBS {
+            let mut finished: Vec<(u64, String)> = jobs
+                .iter()
+                .filter(|(_, j)| !matches!(j.lock().expect("job lock").state, JobState::Running))
+                .map(|(k, _)| (k.trim_start_matches("job-").parse().unwrap_or(0), k.clone()))
+                .collect();
+            finished.sort();
+            for (_, k) in finished.iter().take(jobs.len() + 1 - KEPT_JOBS) {
+                jobs.remove(k);
+            }
         }
         let id = format!("job-{}", self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1);
         let status = Arc::new(Mutex::new(JobStatus {
