@@ -256,20 +256,13 @@ async fn http_sessions_frames_queries_and_errors() {
             r
         }
     };
-    let unknown = http
-        .post(url("/v1/sessions/nope/frames?robot_id=a&timestamp=0"))
-        .body(jpeg("slambook2-ch11/1.png").to_vec())
-        .send()
+    let post_raw = |path: &str, body: Vec<u8>| http.post(url(path)).body(body).send();
+    let unknown = post_raw("/v1/sessions/nope/frames?robot_id=a&timestamp=0", jpeg("slambook2-ch11/1.png").to_vec())
         .await
         .unwrap();
     let body: serde_json::Value = expect(404)(unknown).json().await.unwrap();
     assert!(body["error"].as_str().unwrap().contains("nope"));
-    let garbage = http
-        .post(url("/v1/sessions/desk/frames?robot_id=a&timestamp=0"))
-        .body(b"not an image".to_vec())
-        .send()
-        .await
-        .unwrap();
+    let garbage = post_raw("/v1/sessions/desk/frames?robot_id=a&timestamp=0", b"not an image".to_vec()).await.unwrap();
     expect(400)(garbage);
     let wrong_len = http
         .post(url("/v1/sessions/desk/frames"))
@@ -279,14 +272,10 @@ async fn http_sessions_frames_queries_and_errors() {
         .unwrap();
     let body: serde_json::Value = expect(400)(wrong_len).json().await.unwrap();
     assert!(body["error"].as_str().unwrap().contains("2 values"));
-    let missing = http
-        .post(url("/v1/sessions/desk/frames?timestamp=0"))
-        .body(jpeg("slambook2-ch11/1.png").to_vec())
-        .send()
-        .await
-        .unwrap();
+    let missing =
+        post_raw("/v1/sessions/desk/frames?timestamp=0", jpeg("slambook2-ch11/1.png").to_vec()).await.unwrap();
     expect(400)(missing);
-    let big = http.post(url("/v1/embed")).body(vec![0u8; 3 << 20]).send().await.unwrap();
+    let big = post_raw("/v1/embed", vec![0u8; 3 << 20]).await.unwrap();
     expect(413)(big);
     let dup = http.post(url("/v1/sessions")).json(&serde_json::json!({ "id": "desk" })).send().await.unwrap();
     expect(409)(dup);

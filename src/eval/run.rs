@@ -183,10 +183,12 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         );
         plots::pr_curve(&dir.join("pr_curve.png"), &[(out.variant.clone(), out.report.pr_curve.clone())], &title)?;
         let qd = query_desc.as_ref().unwrap_or(&ref_desc);
-        let scores: Vec<f32> = qd
-            .iter()
-            .flat_map(|q| ref_desc.iter().map(move |r| q.iter().zip(r).map(|(a, b)| a * b).sum::<f32>()))
-            .collect();
+        // The store's SIMD dot-product kernel, one query row at a time.
+        let refs: Vec<f32> = ref_desc.iter().flatten().copied().collect();
+        let mut scores = vec![0f32; qd.len() * ref_desc.len()];
+        for (q, row) in qd.iter().zip(scores.chunks_exact_mut(ref_desc.len())) {
+            crate::store::kernels::dots_f32(q, &refs, row);
+        }
         let truth: Vec<(usize, usize)> = gt.loops.iter().flat_map(|(&q, rs)| rs.iter().map(move |&r| (q, r))).collect();
         plots::similarity(&dir.join("similarity.png"), &scores, qd.len(), ref_desc.len(), &truth)?;
     }
