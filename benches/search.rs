@@ -4,7 +4,8 @@
 //!
 //! env: LOOPD_BENCH_SIZES (default "10000,100000,1000000"), LOOPD_BENCH_DIMS (default "2048,256"),
 //!      LOOPD_BENCH_SINGLES (single queries per cell, default 20), LOOPD_BENCH_INSERTS (default 100000),
-//!      LOOPD_BENCH_FAISS=0 to skip FAISS
+//!      LOOPD_BENCH_FAISS=0 to skip FAISS,
+//!      LOOPD_BENCH_SEARCH_DEVICE=cuda (or cuda:N, cpu) to add the libtorch device path's columns
 use indicatif::{ProgressBar, ProgressStyle};
 use loopd::store::index::{SessionIndex, Storage};
 use loopd::store::query::LoopQuery;
@@ -76,6 +77,14 @@ fn faiss(n: usize, dim: usize, singles: usize) -> Option<Faiss> {
     })
 }
 
+/// The libtorch device to time searches on besides the host kernels, if asked for.
+fn search_device() -> anyhow::Result<Option<tch::Device>> {
+    Ok(match std::env::var("LOOPD_BENCH_SEARCH_DEVICE") {
+        Ok(s) if !s.is_empty() => Some(loopd::model::device::parse_device(&s)?),
+        _ => None,
+    })
+}
+
 fn main() -> anyhow::Result<()> {
     if std::env::args().any(|a| a == "--list") {
         return Ok(());
@@ -91,6 +100,7 @@ fn main() -> anyhow::Result<()> {
     println!("exact top-10, {threads} threads; loopd stores f16 (single) and f32; FAISS IndexFlatIP f32\n");
     println!("| n | dim | FAISS single q/s | loopd f16 single q/s | ratio | loopd f16 GB/s | loopd f32 single q/s | FAISS batch-64 q/s | loopd f16 batch-64 q/s | ratio | top-1 agree |");
     println!("|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
+    let mut device_rows = Vec::new();
     for &dim in &dims {
         for &n in &sizes {
             let f = faiss(n, dim, singles);
@@ -116,11 +126,32 @@ fn main() -> anyhow::Result<()> {
             let t = Instant::now();
             let mut batches = 0;
             while batches < 2 || t.elapsed() < Duration::from_secs(2) {
-                index.search_batch(&queries[..BATCH], &opts);
+                index.search_batch(&queries[..BATCH], &opts, threads);
                 batches += 1;
             }
             let batch_qps = (batches * BATCH) as f64 / t.elapsed().as_secs_f64();
-            drop(index);
+            if let Some(device) = search_device()? {
+                let mut index = index;
+                index.search_on(device, 0);
+                index.upload();
+                let (dev_qps, dev_top1) = time_single(&index);
+                let t = Instant::now();
+                let mut batches = 0;
+                while batches < 2 || t.elapsed() < Duration::from_secs(2) {
+                    index.search_batch(&queries[..BATCH], &opts, threads);
+                    batches += 1;
+                }
+                let dev_batch = (batches * BATCH) as f64 / t.elapsed().as_secs_f64();
+                // Every timed search was answered on the device, none by the host fallback.
+                assert_eq!(index.device_searches() as usize, singles + 1 + batches);
+                let agree = dev_top1.iter().zip(&top1).filter(|(a, b)| a == b).count();
+                device_rows.push(format!(
+                    "| {n} | {dim} | {device:?} | {qps:.1} | {dev_qps:.1} | {:.2} | {batch_qps:.1} | {dev_batch:.1} | {:.2} | {agree}/{} |",
+                    dev_qps / qps,
+                    dev_batch / batch_qps,
+                    top1.len()
+                ));
+            }
             match f {
                 Some(f) => {
                     let agree = top1.iter().zip(&f.top1).filter(|(a, b)| a == b).count();
@@ -138,6 +169,12 @@ fn main() -> anyhow::Result<()> {
                 ),
             }
         }
+    }
+    if !device_rows.is_empty() {
+        println!("\nlibtorch device path (f16 rows on the device) against the host kernels, same index:\n");
+        println!("| n | dim | device | host single q/s | device single q/s | ratio | host batch-64 q/s | device batch-64 q/s | ratio | top-1 = host |");
+        println!("|--:|--:|--|--:|--:|--:|--:|--:|--:|--:|");
+        device_rows.iter().for_each(|r| println!("{r}"));
     }
     store_bench()
 }

@@ -32,6 +32,7 @@ async fn server() -> &'static Server {
                     limits: ImageLimits { max_bytes: 2 << 20, ..Default::default() },
                     max_body_bytes: 8 << 20,
                     max_jobs: 2,
+                    search: Default::default(),
                 };
                 let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
                 tx.send(Server {

@@ -306,7 +306,7 @@ fn batched_search_matches_single_searches() {
             index.push(i as u64, if i < 111 { "ref" } else { "query" }, i as f64, None, d);
         }
         let opts = LoopQuery { k: 7, robot_id: Some("query".into()), exclude_last_frames: 30, ..Default::default() };
-        let batch = index.search_batch(&query[..20], &opts);
+        let batch = index.search_batch(&query[..20], &opts, 2);
         for (q, got) in query[..20].iter().zip(&batch) {
             let single = index.search(q, &opts, 2);
             assert_eq!(
@@ -317,5 +317,105 @@ fn batched_search_matches_single_searches() {
                 assert!((a.score - b.score).abs() < 1e-4);
             }
         }
+        // The same batch on the device path (libtorch on the CPU device here).
+        index.search_on(tch::Device::Cpu, 0);
+        let on_device = index.search_batch(&query[..20], &opts, 2);
+        assert_eq!(index.device_searches(), 1);
+        for (d, h) in on_device.iter().zip(&batch) {
+            assert_eq!(d.len(), h.len());
+            for (a, b) in d.iter().zip(h) {
+                assert!((a.score - b.score).abs() < 2e-3);
+                if storage == Storage::F32 {
+                    assert_eq!(a.frame_id, b.frame_id);
+                }
+            }
+        }
+    }
+}
+
+/// The device path (scores and top-k in libtorch) on the CPU device: the same code that runs on
+/// the model's GPU. Against the host kernels: same matches, same scores, filters respected, and
+/// the device copy follows frames added after earlier searches.
+#[tokio::test]
+async fn device_search_matches_host_search() {
+    use loopd::store::SearchConfig;
+    let (query, _) = corridor();
+    for storage in [Storage::F32, Storage::F16] {
+        let (host_dir, dev_dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        let host = Store::open(host_dir.path()).unwrap();
+        let dev = Store::open_with(dev_dir.path(), SearchConfig { device: Some(tch::Device::Cpu), device_min_rows: 0 })
+            .unwrap();
+        let queries = [
+            LoopQuery { k: 5, ..Default::default() },
+            LoopQuery { k: 5, robot_id: Some("query".into()), exclude_last_frames: 30, ..Default::default() },
+            LoopQuery {
+                k: 3,
+                robot_id: Some("query".into()),
+                scope: Scope::SameRobot,
+                exclude_last_seconds: 20.0,
+                ..Default::default()
+            },
+            LoopQuery {
+                k: 10,
+                robot_id: Some("query".into()),
+                scope: Scope::OtherRobots,
+                min_score: 0.7,
+                ..Default::default()
+            },
+        ];
+        let compare = |round: &str| {
+            for (qi, q) in queries.iter().enumerate() {
+                for d in [&query[3], &query[60], &query[110]] {
+                    let a = host.query("c", d.clone(), q).unwrap();
+                    let b = dev.query("c", d.clone(), q).unwrap();
+                    let ids = |m: &[loopd::store::query::Match]| m.iter().map(|m| m.frame_id).collect::<Vec<_>>();
+                    assert_eq!(a.len(), b.len(), "{storage:?} {round} query {qi}");
+                    if storage == Storage::F32 {
+                        assert_eq!(ids(&a), ids(&b), "{storage:?} {round} query {qi}");
+                    }
+                    // f16 sessions score a half-precision query on the device (~1e-3 apart), so
+                    // near-equal neighbours may swap: every device match must be an allowed frame
+                    // with the host's score, and the k-th score must match the host's k-th.
+                    let wide = host.query("c", d.clone(), &LoopQuery { k: q.k + 20, ..q.clone() }).unwrap();
+                    for y in &b {
+                        let x = wide.iter().find(|x| x.frame_id == y.frame_id);
+                        let x =
+                            x.unwrap_or_else(|| panic!("{storage:?} {round} query {qi}: {} not allowed", y.frame_id));
+                        assert!(
+                            (x.score - y.score).abs() < 2e-3,
+                            "{storage:?} {round} query {qi}: {} vs {}",
+                            x.score,
+                            y.score
+                        );
+                        assert_eq!((x.robot_id.as_str(), x.timestamp), (y.robot_id.as_str(), y.timestamp));
+                    }
+                    if let (Some(x), Some(y)) = (a.last(), b.last()) {
+                        assert!((x.score - y.score).abs() < 2e-3, "{storage:?} {round} query {qi}: k-th score");
+                    }
+                }
+            }
+        };
+        for s in [&host, &dev] {
+            two_robot_session(s, "c", storage).await;
+        }
+        compare("after the first frames");
+        // More frames after the device copy exists: the copy must grow with them.
+        for s in [&host, &dev] {
+            // Mid-points of neighbouring frames: new descriptors, no exact ties with stored ones.
+            let extra: Vec<NewFrame> = query[..41]
+                .windows(2)
+                .enumerate()
+                .map(|(i, w)| {
+                    let mid: Vec<f32> = w[0].iter().zip(&w[1]).map(|(a, b)| a + b).collect();
+                    frame(Some(5000 + i as u64), "third", 900.0 + i as f64, &mid)
+                })
+                .collect();
+            s.add_frames("c", extra).await.unwrap();
+        }
+        compare("after more frames");
+        assert_eq!(dev.list()[0].frames, 262);
+        // Every query above was answered on the device (none fell back to the host kernels).
+        assert_eq!(dev.session("c").unwrap().device_searches(), 2 * 4 * 3);
+        assert_eq!(host.session("c").unwrap().device_searches(), 0);
     }
 }

@@ -6,7 +6,7 @@ use super::service::LoopService;
 use crate::engine::{Engine, EngineConfig};
 use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
-use crate::store::Store;
+use crate::store::{SearchConfig, Store};
 use anyhow::{Context, Result};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -22,6 +22,8 @@ pub struct ServerConfig {
     /// Largest HTTP body (sequence uploads are the big ones).
     pub max_body_bytes: usize,
     pub max_jobs: usize,
+    /// Where loop searches run (host kernels or a libtorch device).
+    pub search: SearchConfig,
 }
 
 pub struct RunningServer {
@@ -36,7 +38,8 @@ impl RunningServer {
     /// Binds both listeners (port 0 picks a free one) and starts serving.
     pub async fn start(cfg: ServerConfig, model: Model) -> Result<Self> {
         let store = Arc::new(
-            Store::open(&cfg.data_dir).with_context(|| format!("opening store in {}", cfg.data_dir.display()))?,
+            Store::open_with(&cfg.data_dir, cfg.search)
+                .with_context(|| format!("opening store in {}", cfg.data_dir.display()))?,
         );
         let engine = Engine::start(model, cfg.engine.clone(), cfg.limits)?;
         let service = LoopService { engine, store };

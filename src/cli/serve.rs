@@ -1,13 +1,16 @@
 use super::ModelArgs;
 use crate::api::server::{RunningServer, ServerConfig};
 use crate::engine::EngineConfig;
+use crate::model::device::parse_device;
 use crate::model::preprocess::ImageLimits;
+use crate::store::SearchConfig;
 use anyhow::Result;
 use clap::Args;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
+use tch::Device;
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -42,9 +45,26 @@ pub struct ServeArgs {
     /// Threads decoding images at once (default: number of cores).
     #[arg(long, env = "LOOPD_DECODE_WORKERS")]
     pub decode_workers: Option<usize>,
+    /// Where loop searches run: auto (the model's device when it is a GPU, else the host's SIMD
+    /// kernels), cpu, cuda or cuda:N.
+    #[arg(long, env = "LOOPD_SEARCH_DEVICE", default_value = "auto")]
+    pub search_device: String,
+    /// Sessions with fewer frames search on the host even when a device is set.
+    #[arg(long, env = "LOOPD_SEARCH_DEVICE_MIN_FRAMES", default_value_t = 4096)]
+    pub search_device_min_frames: usize,
 }
 
 impl ServeArgs {
+    /// The search placement, given the device the model runs on.
+    pub fn search_config(&self, model_device: Device) -> Result<SearchConfig> {
+        let device = match self.search_device.as_str() {
+            "auto" => model_device.is_cuda().then_some(model_device),
+            "cpu" => None,
+            other => Some(parse_device(other)?),
+        };
+        Ok(SearchConfig { device, device_min_rows: self.search_device_min_frames })
+    }
+
     pub fn server_config(&self) -> ServerConfig {
         let defaults = EngineConfig::default();
         ServerConfig {
@@ -65,13 +85,14 @@ impl ServeArgs {
             },
             max_body_bytes: self.max_body_bytes.max(self.max_image_bytes + (1 << 20)),
             max_jobs: self.max_jobs,
+            search: SearchConfig::default(),
         }
     }
 }
 
 pub fn run(a: ServeArgs) -> Result<ExitCode> {
     let model = a.model.load()?;
-    let cfg = a.server_config();
+    let cfg = ServerConfig { search: a.search_config(model.device)?, ..a.server_config() };
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
         let server = RunningServer::start(cfg, model).await?;

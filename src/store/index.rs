@@ -1,5 +1,6 @@
 //! One session's descriptors, contiguous in memory, searched exactly (cosine = dot of unit rows).
-use super::kernels::{dots_f16, dots_f32, f16_to_f32};
+use super::device::{DeviceRows, HostRows};
+use super::kernels::{dots_f16, dots_f32, dots_many_f16, dots_many_f32};
 use super::query::{LoopQuery, Match, Pose, Scope};
 use serde::{Deserialize, Serialize};
 use std::collections::{BinaryHeap, HashMap};
@@ -46,6 +47,16 @@ pub struct SessionIndex {
     by_frame: HashMap<u64, usize>,
     /// Frame ids of each robot, ascending (its "last N frames" are the N highest ids).
     by_robot: Vec<Vec<u64>>,
+    /// Set when searches run on a libtorch device (the model's GPU); None: the host kernels.
+    device: Option<DeviceSearch>,
+}
+
+struct DeviceSearch {
+    rows: std::sync::Mutex<DeviceRows>,
+    /// Below this many rows the host kernels answer (a device round trip costs more).
+    min_rows: usize,
+    /// Searches the device answered (a failed one falls back to the host and is not counted).
+    answered: std::sync::atomic::AtomicU64,
 }
 
 /// Row values (rows x dim) from which a single query is split across threads.
@@ -67,7 +78,41 @@ impl SessionIndex {
             robot_ids: HashMap::new(),
             by_frame: HashMap::new(),
             by_robot: Vec::new(),
+            device: None,
         }
+    }
+
+    /// Searches on `device` (scores and top-k there) once the session holds `min_rows` rows.
+    /// The host rows stay the source of truth; the device copy is topped up before each search.
+    pub fn search_on(&mut self, device: tch::Device, min_rows: usize) {
+        let rows = DeviceRows::new(device, self.storage() == Storage::F16, self.dim);
+        self.device = Some(DeviceSearch { rows: std::sync::Mutex::new(rows), min_rows, answered: Default::default() });
+    }
+
+    /// Copies the rows to the search device now (at start-up) rather than at the first query.
+    pub fn upload(&self) {
+        if let Some(dev) = &self.device {
+            if let Err(e) = dev.rows.lock().expect("device rows").sync(self.host_rows()) {
+                tracing::warn!(error = %e, "copying rows to the search device failed; searching on the host");
+            }
+        }
+    }
+
+    fn host_rows(&self) -> HostRows<'_> {
+        match &self.rows {
+            Rows::F16(v) => HostRows::F16(v),
+            Rows::F32(v) => HostRows::F32(v),
+        }
+    }
+
+    /// How many searches (a batch counts once) the device has answered.
+    pub fn device_searches(&self) -> u64 {
+        self.device.as_ref().map_or(0, |d| d.answered.load(std::sync::atomic::Ordering::Relaxed))
+    }
+
+    /// The device searches run on, if any.
+    pub fn search_device(&self) -> Option<tch::Device> {
+        self.device.as_ref().map(|d| d.rows.lock().expect("device rows").device())
     }
 
     pub fn len(&self) -> usize {
@@ -150,6 +195,10 @@ impl SessionIndex {
         if k == 0 || self.frames.is_empty() {
             return Vec::new();
         }
+        if let Some(mut found) = self.device_top(q, opts, k, &filter) {
+            let best = found.pop().unwrap_or_default();
+            return best.into_iter().map(|(score, row)| self.to_match(score, row)).collect();
+        }
         let n = self.frames.len();
         let chunks: Vec<(usize, usize)> = (0..n).step_by(CHUNK_ROWS).map(|s| (s, (s + CHUNK_ROWS).min(n))).collect();
         // Below a few MB of rows, starting threads costs more than it saves.
@@ -194,69 +243,122 @@ impl SessionIndex {
 }
 
 impl SessionIndex {
-    /// Top-k for many queries at once (same options): rows are converted to f32 a block at a
-    /// time and scored with one matrix product per block (BLAS via libtorch), which is
-    /// compute-bound rather than memory-bound once there are tens of queries.
-    pub fn search_batch(&self, queries: &[Vec<f32>], opts: &LoopQuery) -> Vec<Vec<Match>> {
+    /// Top-k for many queries at once (same options). Rows are scored a cache-sized block at a
+    /// time against all queries with the register-blocked kernel (each row value loaded once per
+    /// four queries), threads taking blocks in turn; compute-bound rather than memory-bound.
+    pub fn search_batch(&self, queries: &[Vec<f32>], opts: &LoopQuery, threads: usize) -> Vec<Vec<Match>> {
         let k = opts.k.min(super::query::MAX_K);
         if queries.len() <= 1 || k == 0 || self.frames.is_empty() {
-            return queries.iter().map(|q| self.search(q, opts, 1)).collect();
+            return queries.iter().map(|q| self.search(q, opts, threads)).collect();
         }
         let filter = Filter::new(self, opts);
-        let b = queries.len();
+        let (b, n, dim) = (queries.len(), self.frames.len(), self.dim);
         let flat: Vec<f32> = queries.iter().flat_map(|q| q.iter().copied()).collect();
-        let qt = tch::Tensor::from_slice(&flat).reshape([b as i64, self.dim as i64]);
-        let mut heaps: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
-        let n = self.frames.len();
-        let block = (BATCH_BLOCK_BYTES / (4 * self.dim)).max(1);
-        let mut rows32 = match self.rows {
-            Rows::F16(_) => vec![0f32; block * self.dim],
-            Rows::F32(_) => Vec::new(), // scored in place
-        };
-        for s in (0..n).step_by(block) {
-            let e = (s + block).min(n);
-            let block_rows: &[f32] = match &self.rows {
-                Rows::F16(v) => {
-                    // Both cores convert: otherwise the conversion is a third of the batch time.
-                    let src = &v[s * self.dim..e * self.dim];
-                    let dst = &mut rows32[..src.len()];
-                    let half = (src.len() / 2).next_multiple_of(self.dim);
-                    let (d0, d1) = dst.split_at_mut(half.min(dst.len()));
-                    let (s0, s1) = src.split_at(half.min(src.len()));
-                    std::thread::scope(|sc| {
-                        sc.spawn(|| f16_to_f32(s1, d1));
-                        f16_to_f32(s0, d0);
-                    });
-                    &rows32[..(e - s) * self.dim]
+        if let Some(found) = self.device_top(&flat, opts, k, &filter) {
+            return found.into_iter().map(|v| v.into_iter().map(|(s, row)| self.to_match(s, row)).collect()).collect();
+        }
+        let block = batch_block_rows(dim, self.storage());
+        let blocks = n.div_ceil(block);
+        let threads = if n * dim < PARALLEL_MIN_VALUES / 4 { 1 } else { threads.clamp(1, blocks) };
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        let work = || {
+            let mut heaps: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
+            let mut scores = vec![0f32; block * b];
+            loop {
+                let c = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if c >= blocks {
+                    break;
                 }
-                Rows::F32(v) => &v[s * self.dim..e * self.dim],
-            };
-            let shape = [(e - s) as i64, self.dim as i64];
-            // SAFETY: `block_rows` outlives `rt`, which is dropped at the end of this iteration
-            // and only read by the product below (no copy of the block is made).
-            let rt = unsafe {
-                tch::Tensor::from_blob(
-                    block_rows.as_ptr() as *const u8,
-                    &shape,
-                    &[shape[1], 1],
-                    tch::Kind::Float,
-                    tch::Device::Cpu,
-                )
-            };
-            // rows x queries: MKL runs this orientation ~1.5x faster than queries x rows here.
-            let scores = Vec::<f32>::try_from(rt.matmul(&qt.tr()).flatten(0, -1)).unwrap_or_default();
-            for (i, row_scores) in scores.chunks_exact(b).enumerate() {
-                for (heap, &score) in heaps.iter_mut().zip(row_scores) {
-                    if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
-                        heap.push(score, s + i);
+                let (s, e) = (c * block, ((c + 1) * block).min(n));
+                let out = &mut scores[..(e - s) * b];
+                match &self.rows {
+                    Rows::F16(v) => dots_many_f16(&flat, &v[s * dim..e * dim], dim, out),
+                    Rows::F32(v) => dots_many_f32(&flat, &v[s * dim..e * dim], dim, out),
+                }
+                for (i, row_scores) in out.chunks_exact(b).enumerate() {
+                    for (heap, &score) in heaps.iter_mut().zip(row_scores) {
+                        if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
+                            heap.push(score, s + i);
+                        }
                     }
                 }
             }
-        }
+            heaps
+        };
+        let heaps = if threads == 1 {
+            work()
+        } else {
+            std::thread::scope(|sc| {
+                let handles: Vec<_> = (0..threads).map(|_| sc.spawn(work)).collect();
+                let mut merged: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
+                for h in handles {
+                    for (m, heap) in merged.iter_mut().zip(h.join().expect("search thread")) {
+                        for (score, row) in heap.into_vec() {
+                            m.push(score, row);
+                        }
+                    }
+                }
+                merged
+            })
+        };
         heaps
             .into_iter()
             .map(|mut h| h.sorted().into_iter().map(|(score, row)| self.to_match(score, row)).collect())
             .collect()
+    }
+
+    /// Top-k (score, row) per query from the device mirror, best first; None when this index
+    /// searches on the host or the device failed (logged; the host kernels then answer).
+    fn device_top(
+        &self,
+        queries: &[f32],
+        opts: &LoopQuery,
+        k: usize,
+        filter: &Filter,
+    ) -> Option<Vec<Vec<(f32, usize)>>> {
+        let dev = self.device.as_ref().filter(|d| self.frames.len() >= d.min_rows)?;
+        let n = self.frames.len();
+        let mut rows = dev.rows.lock().expect("device rows");
+        let result = (|| -> Result<_, tch::TchError> {
+            rows.sync(self.host_rows())?;
+            // Filtered rows (a robot's own recent frames) tend to score highest: fetch past them
+            // and widen the fetch until every query has k survivors or nothing is left.
+            let mut fetch = (2 * k + opts.exclude_last_frames).min(n);
+            loop {
+                let mut short = false;
+                let picked = rows
+                    .top(queries, fetch)?
+                    .into_iter()
+                    .map(|cands| {
+                        let mut got = Vec::with_capacity(k);
+                        for &(score, row) in &cands {
+                            if score < opts.min_score || got.len() == k {
+                                break;
+                            }
+                            if filter.allows(row) {
+                                got.push((score, row));
+                            }
+                        }
+                        let more = cands.len() == fetch && cands.last().is_some_and(|c| c.0 >= opts.min_score);
+                        short |= got.len() < k && more && fetch < n;
+                        got
+                    })
+                    .collect::<Vec<_>>();
+                if !short {
+                    dev.answered.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    return Ok(picked);
+                }
+                fetch = (fetch * 4).min(n);
+            }
+        })();
+        result.map_err(|e| tracing::warn!(error = %e, "device search failed; searching on the host")).ok()
+    }
+
+    fn storage(&self) -> Storage {
+        match self.rows {
+            Rows::F16(_) => Storage::F16,
+            Rows::F32(_) => Storage::F32,
+        }
     }
 
     fn to_match(&self, score: f32, row: usize) -> Match {
@@ -271,8 +373,11 @@ impl SessionIndex {
     }
 }
 
-/// f32 bytes of one block of rows in batched search: fits the L3 cache beside the queries.
-const BATCH_BLOCK_BYTES: usize = 8 << 20;
+/// Rows per block in batched search: one 1024-value slice of the block (what the kernel sweeps
+/// per query tile) stays within ~192 KB of L2.
+fn batch_block_rows(dim: usize, storage: Storage) -> usize {
+    (192 * 1024 / (dim.min(1024) * storage.bytes_per_value())).clamp(48, 4096)
+}
 
 /// The query's filters, resolved once to row-level tests.
 struct Filter<'a> {

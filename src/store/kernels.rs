@@ -39,17 +39,44 @@ pub fn dots_f32(q: &[f32], rows: &[f32], out: &mut [f32]) {
     }
 }
 
-/// f16 bits to f32, vectorised with F16C where available.
-pub fn f16_to_f32(src: &[u16], dst: &mut [f32]) {
-    debug_assert_eq!(src.len(), dst.len());
+/// `out[r * nq + q] = dot(rows[r], queries[q])`: a block of stored rows against `nq` queries
+/// (both row-major, `dim` wide). Register-blocked so each loaded row value serves four queries:
+/// with tens of queries this is compute-bound, not memory-bound.
+pub fn dots_many_f16(queries: &[f32], rows: &[u16], dim: usize, out: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("f16c") {
-        // SAFETY: features detected; equal lengths checked by the caller contract above.
-        unsafe { x86::f16_to_f32(src, dst) };
+    if dim.is_multiple_of(8)
+        && std::is_x86_feature_detected!("avx2")
+        && std::is_x86_feature_detected!("fma")
+        && std::is_x86_feature_detected!("f16c")
+    {
+        // SAFETY: features detected; shapes are checked inside before any pointer arithmetic.
+        unsafe { x86::dots_many(queries, rows, dim, out) };
         return;
     }
-    for (d, &s) in dst.iter_mut().zip(src) {
-        *d = f16::from_bits(s).to_f32();
+    dots_many_fallback(queries, rows.len() / dim.max(1), dim, out, |q, tmp| dots_f16(q, rows, tmp));
+}
+
+/// As [`dots_many_f16`] for f32 rows.
+pub fn dots_many_f32(queries: &[f32], rows: &[f32], dim: usize, out: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if dim.is_multiple_of(8) && std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+        // SAFETY: as above.
+        unsafe { x86::dots_many(queries, rows, dim, out) };
+        return;
+    }
+    dots_many_fallback(queries, rows.len() / dim.max(1), dim, out, |q, tmp| dots_f32(q, rows, tmp));
+}
+
+/// One query at a time, scattered into the rows x queries layout.
+fn dots_many_fallback(queries: &[f32], nr: usize, dim: usize, out: &mut [f32], dots: impl Fn(&[f32], &mut [f32])) {
+    let nq = queries.len() / dim.max(1);
+    assert_eq!(out.len(), nr * nq, "output is rows x queries");
+    let mut tmp = vec![0f32; nr];
+    for (qi, q) in queries.chunks_exact(dim).enumerate() {
+        dots(q, &mut tmp);
+        for (r, &v) in tmp.iter().enumerate() {
+            out[r * nq + qi] = v;
+        }
     }
 }
 
@@ -114,19 +141,114 @@ mod x86 {
         }
     }
 
-    #[target_feature(enable = "avx2,f16c")]
-    pub unsafe fn f16_to_f32(src: &[u16], dst: &mut [f32]) {
-        let n = src.len().min(dst.len());
-        let mut i = 0;
-        while i + 8 <= n {
-            _mm256_storeu_ps(
-                dst.as_mut_ptr().add(i),
-                _mm256_cvtph_ps(_mm_loadu_si128(src.as_ptr().add(i) as *const __m128i)),
-            );
-            i += 8;
+    /// A stored value type the batch kernel can widen to eight f32 lanes.
+    pub trait Lanes: Copy {
+        /// # Safety
+        /// `p..p+8` must be readable and the CPU must have AVX2/F16C.
+        unsafe fn load8(p: *const Self) -> __m256;
+    }
+    impl Lanes for u16 {
+        #[inline(always)]
+        unsafe fn load8(p: *const u16) -> __m256 {
+            _mm256_cvtph_ps(_mm_loadu_si128(p as *const __m128i))
         }
-        for j in i..n {
-            dst[j] = half::f16::from_bits(src[j]).to_f32();
+    }
+    impl Lanes for f32 {
+        #[inline(always)]
+        unsafe fn load8(p: *const f32) -> __m256 {
+            _mm256_loadu_ps(p)
+        }
+    }
+
+    /// Query values per K-slice: four queries' slices (16 KB) stay in L1 while rows stream from L2.
+    const KC: usize = 1024;
+
+    #[target_feature(enable = "avx2,fma,f16c")]
+    pub unsafe fn dots_many<T: Lanes>(queries: &[f32], rows: &[T], dim: usize, out: &mut [f32]) {
+        let (nq, nr) = (queries.len() / dim, rows.len() / dim);
+        assert!(dim.is_multiple_of(8) && queries.len() == nq * dim && rows.len() == nr * dim);
+        assert_eq!(out.len(), nr * nq, "output is rows x queries");
+        out.fill(0.0);
+        let mut k0 = 0;
+        while k0 < dim {
+            let kl = KC.min(dim - k0);
+            let mut q0 = 0;
+            while q0 < nq {
+                let qn = (nq - q0).min(TQ);
+                let mut r0 = 0;
+                while r0 < nr {
+                    let rn = (nr - r0).min(TR);
+                    let qp = queries.as_ptr().add(q0 * dim + k0);
+                    let rp = rows.as_ptr().add(r0 * dim + k0);
+                    let op = out.as_mut_ptr().add(r0 * nq + q0);
+                    tile_dispatch(rn, qn, qp, rp, dim, kl, op, nq);
+                    r0 += rn;
+                }
+                q0 += qn;
+            }
+            k0 += kl;
+        }
+    }
+
+    /// Rows and queries per register tile (3x4: 12 accumulators, 3 widened rows, 1 query).
+    const TR: usize = 3;
+    const TQ: usize = 4;
+
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    unsafe fn tile_dispatch<T: Lanes>(
+        rn: usize,
+        qn: usize,
+        qp: *const f32,
+        rp: *const T,
+        dim: usize,
+        kl: usize,
+        op: *mut f32,
+        nq: usize,
+    ) {
+        macro_rules! go { ($($r:literal $q:literal),*) => { match (rn, qn) { $(($r, $q) => tile::<T, $r, $q>(qp, rp, dim, kl, op, nq),)* _ => unreachable!() } } }
+        go!(1 1, 1 2, 1 3, 1 4, 2 1, 2 2, 2 3, 2 4, 3 1, 3 2, 3 3, 3 4)
+    }
+
+    /// R rows x Q queries over `len` values: R*Q accumulators (12 of the 16 ymm registers at 3x4),
+    /// each row value widened once and each query value loaded once per step.
+    #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // qi and r index both axes of the register tile
+    unsafe fn tile<T: Lanes, const R: usize, const Q: usize>(
+        q: *const f32,
+        rows: *const T,
+        dim: usize,
+        len: usize,
+        out: *mut f32,
+        nq: usize,
+    ) {
+        let mut acc = [[_mm256_setzero_ps(); Q]; R];
+        let mut j = 0;
+        while j < len {
+            let mut rv = [_mm256_setzero_ps(); R];
+            for (r, v) in rv.iter_mut().enumerate() {
+                *v = T::load8(rows.add(r * dim + j));
+            }
+            for qi in 0..Q {
+                let qv = _mm256_loadu_ps(q.add(qi * dim + j));
+                for r in 0..R {
+                    acc[r][qi] = _mm256_fmadd_ps(rv[r], qv, acc[r][qi]);
+                }
+            }
+            j += 8;
+        }
+        for (r, row) in acc.iter().enumerate() {
+            if Q == 4 {
+                // Four sums at once: three horizontal adds, then the two 128-bit halves.
+                let t = _mm256_hadd_ps(_mm256_hadd_ps(row[0], row[1]), _mm256_hadd_ps(row[2], row[3]));
+                let s = _mm_add_ps(_mm256_castps256_ps128(t), _mm256_extractf128_ps(t, 1));
+                let o = out.add(r * nq);
+                _mm_storeu_ps(o, _mm_add_ps(_mm_loadu_ps(o), s));
+                continue;
+            }
+            for (qi, a) in row.iter().enumerate() {
+                *out.add(r * nq + qi) += hsum(*a);
+            }
         }
     }
 
@@ -170,6 +292,29 @@ mod tests {
                 let exact: f32 = (0..dim).map(|j| q[j] * rows32[r * dim + j]).sum();
                 assert!((o32[r] - exact).abs() < 1e-3, "f32 dim {dim} row {r}");
                 assert!((o16[r] - exact).abs() < 1e-3 * dim as f32 / 8.0, "f16 dim {dim} row {r}");
+            }
+        }
+    }
+
+    /// Every tile shape (rows mod 3, queries mod 4) and a dim spanning several K-slices.
+    #[test]
+    fn batch_kernel_matches_single_kernel() {
+        for (dim, nr, nq) in [(2048usize, 13usize, 7usize), (256, 5, 64), (8, 1, 1), (520, 3, 4), (12, 4, 3)] {
+            let queries: Vec<f32> = (0..nq * dim).map(|i| ((i * 7 % 13) as f32 - 6.0) / 10.0).collect();
+            let rows32: Vec<f32> = (0..nr * dim).map(|i| ((i * 5 % 11) as f32 - 5.0) / 8.0).collect();
+            let rows16: Vec<u16> = rows32.iter().map(|&v| f16::from_f32(v).to_bits()).collect();
+            let (mut m16, mut m32) = (vec![f32::NAN; nr * nq], vec![f32::NAN; nr * nq]);
+            dots_many_f16(&queries, &rows16, dim, &mut m16);
+            dots_many_f32(&queries, &rows32, dim, &mut m32);
+            for (qi, q) in queries.chunks_exact(dim).enumerate() {
+                let (mut s16, mut s32) = (vec![0.0; nr], vec![0.0; nr]);
+                dots_f16(q, &rows16, &mut s16);
+                dots_f32(q, &rows32, &mut s32);
+                for r in 0..nr {
+                    let tol = 1e-4 * (1.0 + s32[r].abs());
+                    assert!((m32[r * nq + qi] - s32[r]).abs() < tol, "f32 dim {dim} row {r} query {qi}");
+                    assert!((m16[r * nq + qi] - s16[r]).abs() < tol, "f16 dim {dim} row {r} query {qi}");
+                }
             }
         }
     }

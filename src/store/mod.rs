@@ -1,4 +1,5 @@
 //! Map sessions on disk (sled) with an in-memory exact search index per session.
+pub mod device;
 pub mod durability;
 pub mod index;
 pub mod kernels;
@@ -76,6 +77,7 @@ pub struct Store {
     admin: Mutex<()>,
     commit: GroupCommit,
     search_threads: usize,
+    search: SearchConfig,
 }
 
 fn session_tree_name(id: &str) -> String {
@@ -100,9 +102,25 @@ pub fn normalize(descriptor: &mut [f32]) -> Result<(), StoreError> {
     Ok(())
 }
 
+/// Where loop searches run.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct SearchConfig {
+    /// A libtorch device (the model's GPU) holding a copy of every session's rows; None: the
+    /// host SIMD kernels.
+    pub device: Option<tch::Device>,
+    /// Sessions smaller than this search on the host even with a device (round-trip cost).
+    pub device_min_rows: usize,
+}
+
 impl Store {
-    /// Opens (or creates) the database and rebuilds every session's index from it.
+    /// Opens (or creates) the database and rebuilds every session's index from it; searches
+    /// run on the host.
     pub fn open(dir: &Path) -> Result<Self, StoreError> {
+        Self::open_with(dir, SearchConfig::default())
+    }
+
+    /// As [`Store::open`], with searches where `search` says.
+    pub fn open_with(dir: &Path, search: SearchConfig) -> Result<Self, StoreError> {
         std::fs::create_dir_all(dir).map_err(|e| StoreError::Storage(format!("{}: {e}", dir.display())))?;
         let db = sled::Config::new().path(dir.join("sled")).open()?;
         let sessions_tree = db.open_tree("sessions")?;
@@ -112,19 +130,31 @@ impl Store {
         for entry in sessions_tree.iter() {
             let (_, v) = entry?;
             let meta: SessionMeta = serde_json::from_slice(&v).map_err(|e| StoreError::Storage(e.to_string()))?;
-            let session = Session::load(&db, meta)?;
-            frames += session.index.read().expect("index lock").len();
+            let session = Session::load(&db, meta, search)?;
+            let index = session.index.read().expect("index lock");
+            index.upload();
+            frames += index.len();
+            drop(index);
             sessions.insert(session.meta.id.clone(), Arc::new(session));
         }
         tracing::info!(
             sessions = sessions.len(),
             frames,
             elapsed_ms = t.elapsed().as_millis() as u64,
+            search_device = search.device.map_or_else(|| "host".to_string(), |d| format!("{d:?}")),
             "indexes rebuilt from sled"
         );
         let commit = GroupCommit::start(db.clone());
         let search_threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-        Ok(Self { db, sessions_tree, sessions: RwLock::new(sessions), admin: Mutex::new(()), commit, search_threads })
+        Ok(Self {
+            db,
+            sessions_tree,
+            sessions: RwLock::new(sessions),
+            admin: Mutex::new(()),
+            commit,
+            search_threads,
+            search,
+        })
     }
 
     pub fn set_search_threads(&mut self, n: usize) {
@@ -161,7 +191,7 @@ impl Store {
             let created =
                 std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64();
             let meta = SessionMeta { id: id.clone(), name, created, dim, descriptor_id, storage, default_query };
-            let session = Session::load(&self.db, meta.clone())?;
+            let session = Session::load(&self.db, meta.clone(), self.search)?;
             self.sessions_tree.insert(id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises"))?;
             self.sessions.write().expect("sessions lock").insert(id, Arc::new(session));
             meta
@@ -323,9 +353,12 @@ impl Store {
 }
 
 impl Session {
-    fn load(db: &sled::Db, meta: SessionMeta) -> Result<Self, StoreError> {
+    fn load(db: &sled::Db, meta: SessionMeta, search: SearchConfig) -> Result<Self, StoreError> {
         let tree = db.open_tree(session_tree_name(&meta.id))?;
         let mut index = SessionIndex::new(meta.dim, meta.storage);
+        if let Some(device) = search.device {
+            index.search_on(device, search.device_min_rows);
+        }
         let mut bytes = 0u64;
         for entry in tree.iter() {
             let (k, v) = entry?;
@@ -341,6 +374,11 @@ impl Session {
     /// Inserts only if the frame id is free (atomic in sled). False: the id is taken.
     fn insert_new(&self, id: u64, value: &[u8]) -> Result<bool, StoreError> {
         Ok(self.tree.compare_and_swap(frame_key(id), None as Option<&[u8]>, Some(value))?.is_ok())
+    }
+
+    /// Searches of this session answered on the search device (0 when searching on the host).
+    pub fn device_searches(&self) -> u64 {
+        self.index.read().expect("index lock").device_searches()
     }
 
     pub fn info(&self) -> SessionInfo {
