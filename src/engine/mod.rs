@@ -88,8 +88,19 @@ impl Drop for Admission {
     }
 }
 
+/// One forward pass at batch 1 and one at `max_batch` on zeros (first-call allocations, kernels).
+fn warm_up(model: &Model, max_batch: usize) -> anyhow::Result<()> {
+    let p = &model.config.preprocess;
+    let input = Tensor::zeros([3, p.height as i64, p.width as i64], tch::kind::FLOAT_CPU);
+    for n in [1, max_batch] {
+        let batch: Vec<Tensor> = (0..n).map(|_| input.shallow_clone()).collect();
+        model.descriptors(&batch, Variant::FULL)?;
+    }
+    Ok(())
+}
+
 impl Engine {
-    /// Moves the model onto its own thread (after the warm-up, if asked for).
+    /// Moves the model onto its own thread and warms it up there (if asked for).
     pub fn start(model: Model, cfg: EngineConfig, limits: ImageLimits) -> anyhow::Result<Self> {
         let cfg = EngineConfig { max_batch: cfg.max_batch.max(1), queue_capacity: cfg.queue_capacity.max(1), ..cfg };
         let info = Arc::new(EngineInfo {
@@ -99,21 +110,27 @@ impl Engine {
             device: device_name(model.device),
             dtype: format!("{:?}", model.dtype).to_lowercase(),
         });
-        if cfg.warm_up {
-            let t = Instant::now();
-            let p = &model.config.preprocess;
-            let input = Tensor::zeros([3, p.height as i64, p.width as i64], tch::kind::FLOAT_CPU);
-            for n in [1, cfg.max_batch] {
-                let batch: Vec<Tensor> = (0..n).map(|_| input.shallow_clone()).collect();
-                let _ = model.descriptors(&batch, Variant::FULL)?;
-            }
-            tracing::info!(elapsed_ms = t.elapsed().as_millis() as u64, device = %info.device, "engine warmed up");
-        }
         // The channel never fills before admission refuses: admission bounds it.
         let (tx, rx) = mpsc::sync_channel(cfg.queue_capacity);
         let metrics = Arc::new(EngineMetrics::default());
         let (m, c) = (metrics.clone(), cfg.clone());
-        std::thread::Builder::new().name("loopd-model".into()).spawn(move || batcher::run(model, rx, c, m))?;
+        let (ready_tx, ready_rx) = mpsc::sync_channel(1);
+        let device = info.device.clone();
+        std::thread::Builder::new().name("loopd-model".into()).spawn(move || {
+            // Warm up on the thread that will run every forward pass: its thread pool (OpenMP
+            // team) and allocator caches are the ones that get used.
+            let t = Instant::now();
+            let warmed = if c.warm_up { warm_up(&model, c.max_batch) } else { Ok(()) };
+            let ok = warmed.is_ok();
+            if ok && c.warm_up {
+                tracing::info!(elapsed_ms = t.elapsed().as_millis() as u64, %device, "engine warmed up");
+            }
+            let _ = ready_tx.send(warmed);
+            if ok {
+                batcher::run(model, rx, c, m)
+            }
+        })?;
+        ready_rx.recv().map_err(|_| anyhow::anyhow!("model thread ended during warm-up"))??;
         let decode = Arc::new(Semaphore::new(cfg.decode_workers.max(1)));
         Ok(Self { tx, cfg, decode, metrics, info })
     }
