@@ -94,7 +94,7 @@ fn warm_up(model: &Model, max_batch: usize) -> anyhow::Result<()> {
     let input = Tensor::zeros([3, p.height as i64, p.width as i64], tch::kind::FLOAT_CPU);
     for n in [1, max_batch] {
         let batch: Vec<Tensor> = (0..n).map(|_| input.shallow_clone()).collect();
-        model.descriptors(&batch, Variant::FULL)?;
+        let _ = model.descriptors(&batch, Variant::FULL)?;
     }
     Ok(())
 }
