@@ -116,6 +116,16 @@ fn main() -> anyhow::Result<()> {
                     queries[..singles].iter().map(|q| index.search(q, &opts, threads)[0].frame_id).collect();
                 (singles as f64 / t.elapsed().as_secs_f64(), top1)
             };
+            // (queries/s, batches run) for batches of 64 over about 2 s.
+            let time_batch = |index: &SessionIndex| -> (f64, usize) {
+                let t = Instant::now();
+                let mut batches = 0;
+                while batches < 2 || t.elapsed() < Duration::from_secs(2) {
+                    index.search_batch(&queries[..BATCH], &opts, threads);
+                    batches += 1;
+                }
+                ((batches * BATCH) as f64 / t.elapsed().as_secs_f64(), batches)
+            };
             let (f32_qps, _) = {
                 let index = build(n, dim, Storage::F32);
                 time_single(&index)
@@ -123,25 +133,13 @@ fn main() -> anyhow::Result<()> {
             let index = build(n, dim, Storage::F16);
             let (qps, top1) = time_single(&index);
             let gbs = qps * (n * dim * 2) as f64 / 1e9;
-            let t = Instant::now();
-            let mut batches = 0;
-            while batches < 2 || t.elapsed() < Duration::from_secs(2) {
-                index.search_batch(&queries[..BATCH], &opts, threads);
-                batches += 1;
-            }
-            let batch_qps = (batches * BATCH) as f64 / t.elapsed().as_secs_f64();
+            let (batch_qps, _) = time_batch(&index);
             if let Some(device) = search_device()? {
                 let mut index = index;
                 index.search_on(device, 0);
                 index.upload();
                 let (dev_qps, dev_top1) = time_single(&index);
-                let t = Instant::now();
-                let mut batches = 0;
-                while batches < 2 || t.elapsed() < Duration::from_secs(2) {
-                    index.search_batch(&queries[..BATCH], &opts, threads);
-                    batches += 1;
-                }
-                let dev_batch = (batches * BATCH) as f64 / t.elapsed().as_secs_f64();
+                let (dev_batch, batches) = time_batch(&index);
                 // Every timed search was answered on the device, none by the host fallback.
                 assert_eq!(index.device_searches() as usize, singles + 1 + batches);
                 let agree = dev_top1.iter().zip(&top1).filter(|(a, b)| a == b).count();

@@ -66,6 +66,31 @@ pub struct EmbedSetup<'a> {
     pub max_batch: usize,
 }
 
+/// Each file's descriptor (or why not), in order, through the engine: up to `in_flight` files are
+/// read and decoded ahead so the engine can batch them. `done` is called as each one finishes.
+pub async fn embed_paths(
+    engine: &Engine,
+    files: &[PathBuf],
+    variant: Variant,
+    in_flight: usize,
+    done: impl Fn() + Clone,
+) -> Vec<Result<Vec<f32>>> {
+    use futures::StreamExt;
+    futures::stream::iter(files.iter().cloned())
+        .map(|path| {
+            let (engine, done) = (engine.clone(), done.clone());
+            async move {
+                let bytes = tokio::fs::read(&path).await.with_context(|| format!("reading {}", path.display()))?;
+                let d = engine.embed_image(bytes.into(), variant, None).await?;
+                done();
+                anyhow::Ok(d)
+            }
+        })
+        .buffered(in_flight.max(1))
+        .collect()
+        .await
+}
+
 /// Descriptors of `files` (rows in order) through the engine, from the cache when possible.
 pub fn embed_files(engine: &Engine, files: &[PathBuf], setup: &EmbedSetup, label: &str) -> Result<Vec<Vec<f32>>> {
     let key = cache_key(files, &engine.info().descriptor_id, setup.variant, setup.weights);
@@ -81,23 +106,12 @@ pub fn embed_files(engine: &Engine, files: &[PathBuf], setup: &EmbedSetup, label
         .with_style(ProgressStyle::with_template("{msg} {pos}/{len} {wide_bar} {per_sec} eta {eta}").expect("template"))
         .with_message(format!("embedding {label}"));
     let rt = tokio::runtime::Runtime::new()?;
-    let variant = setup.variant;
-    let out: Vec<Vec<f32>> = rt.block_on(async {
-        use futures::StreamExt;
-        let stream = futures::stream::iter(files.iter().cloned()).map(|path| {
-            let (engine, bar) = (engine.clone(), bar.clone());
-            async move {
-                let bytes = tokio::fs::read(&path).await.with_context(|| format!("reading {}", path.display()))?;
-                let d = engine
-                    .embed_image(bytes.into(), variant, None)
-                    .await
-                    .with_context(|| path.display().to_string())?;
-                bar.inc(1);
-                anyhow::Ok(d)
-            }
-        });
-        stream.buffered(setup.max_batch * 2).collect::<Vec<_>>().await.into_iter().collect::<Result<Vec<_>>>()
-    })?;
+    let results = rt.block_on(embed_paths(engine, files, setup.variant, setup.max_batch * 2, || bar.inc(1)));
+    let out = results
+        .into_iter()
+        .zip(files)
+        .map(|(r, path)| r.with_context(|| path.display().to_string()))
+        .collect::<Result<Vec<_>>>()?;
     bar.finish_and_clear();
     if let Some(p) = cache {
         std::fs::create_dir_all(p.parent().unwrap_or(Path::new(".")))?;
