@@ -4,7 +4,7 @@ use crate::engine::Engine;
 use crate::model::network::{Variant, DESCRIPTOR_DIM};
 use crate::store::index::Storage;
 use crate::store::query::{LoopQuery, Match, Pose, Scope};
-use crate::store::{NewFrame, SessionInfo, Store};
+use crate::store::{NewFrame, Session, SessionInfo, Store};
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -123,15 +123,16 @@ impl LoopService {
         }
     }
 
-    fn check_frame(&self, session: &str, f: &FrameInput) -> Result<(), ApiError> {
-        self.store.session(session)?; // unknown session: fail before spending a forward pass
+    /// The frame's session, after the checks that need no forward pass (unknown session first).
+    fn check_frame(&self, session: &str, f: &FrameInput) -> Result<Arc<Session>, ApiError> {
+        let s = self.store.session(session)?;
         if f.robot_id.is_empty() {
             return Err(ApiError::InvalidArgument("robot_id is required".into()));
         }
         if f.metadata.as_ref().is_some_and(|m| !m.is_object()) {
             return Err(ApiError::InvalidArgument("metadata must be a JSON object".into()));
         }
-        Ok(())
+        Ok(s)
     }
 
     pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {
@@ -185,8 +186,7 @@ impl LoopService {
         f: FrameInput,
         options: &QueryOverrides,
     ) -> Result<(u64, Vec<Match>), ApiError> {
-        self.check_frame(session, &f)?;
-        let s = self.store.session(session)?;
+        let s = self.check_frame(session, &f)?;
         let mut q = options.apply(&s.meta.default_query);
         q.robot_id = Some(f.robot_id.clone());
         q.at_time = Some(f.timestamp);
