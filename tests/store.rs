@@ -324,10 +324,8 @@ fn batched_search_matches_single_searches() {
         for (d, h) in on_device.iter().zip(&batch) {
             assert_eq!(d.len(), h.len());
             for (a, b) in d.iter().zip(h) {
-                assert!((a.score - b.score).abs() < 2e-3);
-                if storage == Storage::F32 {
-                    assert_eq!(a.frame_id, b.frame_id);
-                }
+                assert!((a.score - b.score).abs() < 1e-4);
+                assert_eq!(a.frame_id, b.frame_id);
             }
         }
     }
@@ -369,28 +367,17 @@ async fn device_search_matches_host_search() {
                     let a = host.query("c", d.clone(), q).unwrap();
                     let b = dev.query("c", d.clone(), q).unwrap();
                     let ids = |m: &[loopd::store::query::Match]| m.iter().map(|m| m.frame_id).collect::<Vec<_>>();
-                    assert_eq!(a.len(), b.len(), "{storage:?} {round} query {qi}");
-                    if storage == Storage::F32 {
-                        assert_eq!(ids(&a), ids(&b), "{storage:?} {round} query {qi}");
-                    }
-                    // f16 sessions score a half-precision query on the device (~1e-3 apart), so
-                    // near-equal neighbours may swap: every device match must be an allowed frame
-                    // with the host's score, and the k-th score must match the host's k-th.
-                    let wide = host.query("c", d.clone(), &LoopQuery { k: q.k + 20, ..q.clone() }).unwrap();
-                    for y in &b {
-                        let x = wide.iter().find(|x| x.frame_id == y.frame_id);
-                        let x =
-                            x.unwrap_or_else(|| panic!("{storage:?} {round} query {qi}: {} not allowed", y.frame_id));
+                    // The device only proposes candidates; the host scores them again with the
+                    // f32 query, so ranks and scores are the host's, for f16 sessions too.
+                    assert_eq!(ids(&a), ids(&b), "{storage:?} {round} query {qi}");
+                    for (x, y) in a.iter().zip(&b) {
                         assert!(
-                            (x.score - y.score).abs() < 2e-3,
+                            (x.score - y.score).abs() < 1e-5,
                             "{storage:?} {round} query {qi}: {} vs {}",
                             x.score,
                             y.score
                         );
                         assert_eq!((x.robot_id.as_str(), x.timestamp), (y.robot_id.as_str(), y.timestamp));
-                    }
-                    if let (Some(x), Some(y)) = (a.last(), b.last()) {
-                        assert!((x.score - y.score).abs() < 2e-3, "{storage:?} {round} query {qi}: k-th score");
                     }
                 }
             }

@@ -319,31 +319,50 @@ impl SessionIndex {
         let dev = self.device.as_ref().filter(|d| self.frames.len() >= d.min_rows)?;
         let n = self.frames.len();
         let mut rows = dev.rows.lock().expect("device rows");
+        // How far a device score may be from the host's: half-precision products and outputs.
+        let eps = match self.storage() {
+            Storage::F16 => 4e-3,
+            Storage::F32 => 1e-4,
+        };
         let result = (|| -> Result<_, tch::TchError> {
             rows.sync(self.host_rows())?;
             // Filtered rows (a robot's own recent frames) tend to score highest: fetch past them
-            // and widen the fetch until every query has k survivors or nothing is left.
-            let mut fetch = (2 * k + opts.exclude_last_frames).min(n);
+            // and widen the fetch until every query has its candidates or nothing is left.
+            let mut fetch = (2 * k + opts.exclude_last_frames + 8).min(n);
             loop {
+                let tops = rows.top(queries, fetch)?;
                 let mut short = false;
-                let picked = rows
-                    .top(queries, fetch)?
-                    .into_iter()
-                    .map(|cands| {
-                        let mut got = Vec::with_capacity(k);
-                        for &(score, row) in &cands {
-                            if score < opts.min_score || got.len() == k {
-                                break;
-                            }
-                            if filter.allows(row) {
-                                got.push((score, row));
+                let mut picked = Vec::with_capacity(tops.len());
+                for (q, cands) in queries.chunks_exact(self.dim).zip(tops) {
+                    // Candidates: allowed rows down to eps below the k-th allowed device score, so
+                    // the device's rounding cannot push a true top-k row out...
+                    let mut got = Vec::with_capacity(k + 4);
+                    let mut cutoff = opts.min_score - eps;
+                    let mut complete = cands.len() == n;
+                    for &(score, row) in &cands {
+                        if score < cutoff {
+                            complete = true;
+                            break;
+                        }
+                        if filter.allows(row) {
+                            got.push(row);
+                            if got.len() == k {
+                                cutoff = cutoff.max(score - eps);
                             }
                         }
-                        let more = cands.len() == fetch && cands.last().is_some_and(|c| c.0 >= opts.min_score);
-                        short |= got.len() < k && more && fetch < n;
-                        got
-                    })
-                    .collect::<Vec<_>>();
+                    }
+                    short |= !complete;
+                    // ...then scored again on the host with the f32 query: the same scores, ranks
+                    // and ties (earlier frame first) as the host search.
+                    let mut exact: Vec<(f32, usize)> = got
+                        .into_iter()
+                        .map(|row| (self.host_dot(q, row), row))
+                        .filter(|&(score, _)| score >= opts.min_score)
+                        .collect();
+                    exact.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+                    exact.truncate(k);
+                    picked.push(exact);
+                }
                 if !short {
                     dev.answered.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     return Ok(picked);
@@ -352,6 +371,17 @@ impl SessionIndex {
             }
         })();
         result.map_err(|e| tracing::warn!(error = %e, "device search failed; searching on the host")).ok()
+    }
+
+    /// The host kernel's score of one stored row.
+    fn host_dot(&self, q: &[f32], row: usize) -> f32 {
+        let mut out = [0f32];
+        let range = row * self.dim..(row + 1) * self.dim;
+        match &self.rows {
+            Rows::F16(v) => dots_f16(q, &v[range], &mut out),
+            Rows::F32(v) => dots_f32(q, &v[range], &mut out),
+        }
+        out[0]
     }
 
     fn storage(&self) -> Storage {
