@@ -26,10 +26,6 @@ impl DeviceRows {
         Self { device, kind, dim, rows: Tensor::zeros([0, dim as i64], (kind, device)), len: 0 }
     }
 
-    pub fn device(&self) -> Device {
-        self.device
-    }
-
     /// Copies host rows this mirror does not hold yet (one transfer for all of them).
     pub fn sync(&mut self, host: HostRows<'_>) -> Result<(), tch::TchError> {
         let (n, dim) = (

@@ -110,11 +110,6 @@ impl SessionIndex {
         self.device.as_ref().map_or(0, |d| d.answered.load(std::sync::atomic::Ordering::Relaxed))
     }
 
-    /// The device searches run on, if any.
-    pub fn search_device(&self) -> Option<tch::Device> {
-        self.device.as_ref().map(|d| d.rows.lock().expect("device rows").device())
-    }
-
     pub fn len(&self) -> usize {
         self.frames.len()
     }
