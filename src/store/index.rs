@@ -194,45 +194,24 @@ impl SessionIndex {
             let best = found.pop().unwrap_or_default();
             return best.into_iter().map(|(score, row)| self.to_match(score, row)).collect();
         }
-        let n = self.frames.len();
-        let chunks: Vec<(usize, usize)> = (0..n).step_by(CHUNK_ROWS).map(|s| (s, (s + CHUNK_ROWS).min(n))).collect();
         // Below a few MB of rows, starting threads costs more than it saves.
-        let threads = if n * self.dim < PARALLEL_MIN_VALUES { 1 } else { threads.clamp(1, chunks.len()) };
-        let next = std::sync::atomic::AtomicUsize::new(0);
-        let work = || {
-            let mut heap = TopK::new(k);
-            let mut scores = vec![0f32; CHUNK_ROWS];
-            loop {
-                let c = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                let Some(&(s, e)) = chunks.get(c) else { break };
-                let out = &mut scores[..e - s];
-                match &self.rows {
-                    Rows::F16(v) => dots_f16(q, &v[s * self.dim..e * self.dim], out),
-                    Rows::F32(v) => dots_f32(q, &v[s * self.dim..e * self.dim], out),
-                }
-                for (i, &score) in out.iter().enumerate() {
-                    // Score first: the filter is only evaluated for would-be results.
-                    if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
-                        heap.push(score, s + i);
-                    }
+        let threads = if self.frames.len() * self.dim < PARALLEL_MIN_VALUES { 1 } else { threads };
+        let init = || (TopK::new(k), vec![0f32; CHUNK_ROWS]);
+        let parts = self.scan(CHUNK_ROWS, threads, init, |(heap, scores), s, e| {
+            let out = &mut scores[..e - s];
+            match &self.rows {
+                Rows::F16(v) => dots_f16(q, &v[s * self.dim..e * self.dim], out),
+                Rows::F32(v) => dots_f32(q, &v[s * self.dim..e * self.dim], out),
+            }
+            for (i, &score) in out.iter().enumerate() {
+                // Score first: the filter is only evaluated for would-be results.
+                if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
+                    heap.push(score, s + i);
                 }
             }
-            heap
-        };
-        let mut heap = if threads == 1 {
-            work()
-        } else {
-            std::thread::scope(|sc| {
-                let handles: Vec<_> = (0..threads).map(|_| sc.spawn(work)).collect();
-                let mut merged = TopK::new(k);
-                for h in handles {
-                    for (score, row) in h.join().expect("search thread").into_vec() {
-                        merged.push(score, row);
-                    }
-                }
-                merged
-            })
-        };
+        });
+        let mut heap = TopK::new(k);
+        parts.into_iter().for_each(|(h, _)| heap.merge(h));
         heap.sorted().into_iter().map(|(score, row)| self.to_match(score, row)).collect()
     }
 }
@@ -253,49 +232,26 @@ impl SessionIndex {
             return found.into_iter().map(|v| v.into_iter().map(|(s, row)| self.to_match(s, row)).collect()).collect();
         }
         let block = batch_block_rows(dim, self.storage());
-        let blocks = n.div_ceil(block);
-        let threads = if n * dim < PARALLEL_MIN_VALUES / 4 { 1 } else { threads.clamp(1, blocks) };
-        let next = std::sync::atomic::AtomicUsize::new(0);
-        let work = || {
-            let mut heaps: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
-            let mut scores = vec![0f32; block * b];
-            loop {
-                let c = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                if c >= blocks {
-                    break;
-                }
-                let (s, e) = (c * block, ((c + 1) * block).min(n));
-                let out = &mut scores[..(e - s) * b];
-                match &self.rows {
-                    Rows::F16(v) => dots_many_f16(&flat, &v[s * dim..e * dim], dim, out),
-                    Rows::F32(v) => dots_many_f32(&flat, &v[s * dim..e * dim], dim, out),
-                }
-                for (i, row_scores) in out.chunks_exact(b).enumerate() {
-                    for (heap, &score) in heaps.iter_mut().zip(row_scores) {
-                        if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
-                            heap.push(score, s + i);
-                        }
+        let threads = if n * dim < PARALLEL_MIN_VALUES / 4 { 1 } else { threads };
+        let init = || ((0..b).map(|_| TopK::new(k)).collect::<Vec<_>>(), vec![0f32; block * b]);
+        let parts = self.scan(block, threads, init, |(heaps, scores), s, e| {
+            let out = &mut scores[..(e - s) * b];
+            match &self.rows {
+                Rows::F16(v) => dots_many_f16(&flat, &v[s * dim..e * dim], dim, out),
+                Rows::F32(v) => dots_many_f32(&flat, &v[s * dim..e * dim], dim, out),
+            }
+            for (i, row_scores) in out.chunks_exact(b).enumerate() {
+                for (heap, &score) in heaps.iter_mut().zip(row_scores) {
+                    if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
+                        heap.push(score, s + i);
                     }
                 }
             }
-            heaps
-        };
-        let heaps = if threads == 1 {
-            work()
-        } else {
-            std::thread::scope(|sc| {
-                let handles: Vec<_> = (0..threads).map(|_| sc.spawn(work)).collect();
-                let mut merged: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
-                for h in handles {
-                    for (m, heap) in merged.iter_mut().zip(h.join().expect("search thread")) {
-                        for (score, row) in heap.into_vec() {
-                            m.push(score, row);
-                        }
-                    }
-                }
-                merged
-            })
-        };
+        });
+        let mut heaps: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
+        for (part, _) in parts {
+            heaps.iter_mut().zip(part).for_each(|(m, h)| m.merge(h));
+        }
         heaps
             .into_iter()
             .map(|mut h| h.sorted().into_iter().map(|(score, row)| self.to_match(score, row)).collect())
@@ -366,6 +322,37 @@ impl SessionIndex {
             }
         })();
         result.map_err(|e| tracing::warn!(error = %e, "device search failed; searching on the host")).ok()
+    }
+
+    /// Visits all rows in blocks of `block` rows, which up to `threads` workers take in turn from a
+    /// shared counter; each worker has its own state (heaps, scratch), returned for merging.
+    fn scan<S: Send>(
+        &self,
+        block: usize,
+        threads: usize,
+        init: impl Fn() -> S + Sync,
+        visit: impl Fn(&mut S, usize, usize) + Sync,
+    ) -> Vec<S> {
+        let n = self.frames.len();
+        let blocks = n.div_ceil(block);
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        let work = || {
+            let mut state = init();
+            loop {
+                let c = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if c >= blocks {
+                    break state;
+                }
+                visit(&mut state, c * block, ((c + 1) * block).min(n));
+            }
+        };
+        match threads.clamp(1, blocks.max(1)) {
+            1 => vec![work()],
+            t => std::thread::scope(|sc| {
+                let handles: Vec<_> = (0..t).map(|_| sc.spawn(work)).collect();
+                handles.into_iter().map(|h| h.join().expect("search thread")).collect()
+            }),
+        }
     }
 
     /// The host kernel's score of one stored row.
@@ -506,6 +493,12 @@ impl TopK {
         self.heap.push(std::cmp::Reverse((Score(score), usize::MAX - row)));
         if self.heap.len() > self.k {
             self.heap.pop();
+        }
+    }
+
+    fn merge(&mut self, other: TopK) {
+        for (score, row) in other.into_vec() {
+            self.push(score, row);
         }
     }
 
