@@ -59,8 +59,8 @@ async fn drive(engine: &Engine, clients: usize, payloads: &[Payload], budget: Du
             while start.elapsed() < budget || lat.len() < 2 {
                 let t = Instant::now();
                 let r = match &p {
-                    Payload::Input(x) => e.embed_input(x.shallow_clone(), Variant::FULL, None).await,
-                    Payload::Jpeg(b) => e.embed_image(b.clone(), Variant::FULL, None).await,
+                    Payload::Input(x) => e.embed_input(x.shallow_clone(), Variant::FULL).await,
+                    Payload::Jpeg(b) => e.embed_image(b.clone(), Variant::FULL).await,
                 };
                 r.expect("embedding");
                 lat.push(t.elapsed());

@@ -7,8 +7,9 @@
 //!      LOOPD_BENCH_FAISS=0 to skip FAISS,
 //!      LOOPD_BENCH_SEARCH_DEVICE=cuda (or cuda:N, cpu) to add the libtorch device path's columns
 use indicatif::{ProgressBar, ProgressStyle};
-use loopd::store::index::{SessionIndex, Storage};
+use loopd::store::index::SessionIndex;
 use loopd::store::query::LoopQuery;
+use loopd::store::Storage;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -208,6 +209,7 @@ fn store_bench() -> anyhow::Result<()> {
             .map(|r| {
                 let (store, bar) = (store.clone(), bar.clone());
                 tokio::spawn(async move {
+                    let session = store.session("bench")?;
                     let mut row = vec![0f32; dim];
                     for i in (r..n).step_by(robots) {
                         unit_row(SEED, i, dim, &mut row);
@@ -219,7 +221,7 @@ fn store_bench() -> anyhow::Result<()> {
                             metadata: None,
                             descriptor: row.clone(),
                         };
-                        store.add_frames("bench", vec![f]).await?;
+                        store.add_frames(&session, vec![f]).await?;
                         bar.inc(1);
                     }
                     anyhow::Ok(())

@@ -7,4 +7,5 @@ pub mod engine;
 pub mod eval;
 pub mod files;
 pub mod model;
+pub mod pb;
 pub mod store;

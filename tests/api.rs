@@ -2,11 +2,11 @@
 //! client and a real HTTP client, on real frames.
 mod common;
 use common::*;
-use loopd::api::grpc::pb;
-use loopd::api::grpc::pb::loopd_client::LoopdClient;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::model::preprocess::ImageLimits;
+use loopd::pb;
+use loopd::pb::loopd_client::LoopdClient;
 use std::time::Duration;
 
 struct Server {
@@ -56,7 +56,7 @@ fn frame_req(session: &str, robot: &str, t: f64, image: bytes::Bytes, scope: pb:
     pb::AddFrameRequest {
         session_id: session.into(),
         robot_id: robot.into(),
-        timestamp: t,
+        timestamp: Some(t),
         content: Some(pb::add_frame_request::Content::Image(image)),
         options: Some(pb::QueryOptions { k: Some(3), scope: scope as i32, ..Default::default() }),
         ..Default::default()
@@ -147,6 +147,7 @@ async fn grpc_errors_carry_the_right_codes_and_the_server_keeps_serving() {
     let short = pb::AddFrameRequest {
         session_id: "errors".into(),
         robot_id: "r".into(),
+        timestamp: Some(0.0),
         content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor { values: vec![0.5; 10] })),
         ..Default::default()
     };
@@ -238,6 +239,18 @@ async fn http_sessions_frames_queries_and_errors() {
         .await
         .unwrap();
     assert_eq!(q["matches"][0]["frame_id"], first["frame_id"]);
+    // k at the limit by a stored frame: every other frame, not "k = 1001 exceeds the limit".
+    let r = http
+        .post(url("/v1/sessions/desk/query"))
+        .json(&serde_json::json!({ "frame_id": first["frame_id"], "options": { "k": 1000 } }))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let all: serde_json::Value = r.json().await.unwrap();
+    let ids: Vec<&serde_json::Value> = all["matches"].as_array().unwrap().iter().map(|m| &m["frame_id"]).collect();
+    assert_eq!(ids.len(), 2, "{all}");
+    assert!(!ids.contains(&&first["frame_id"]));
     let frame: serde_json::Value = http
         .get(url(&format!("/v1/sessions/desk/frames/{}", first["frame_id"])))
         .send()
@@ -278,6 +291,33 @@ async fn http_sessions_frames_queries_and_errors() {
     expect(400)(missing);
     let big = post_raw("/v1/embed", vec![0u8; 3 << 20]).await.unwrap();
     expect(413)(big);
+    // Over the body limit (8 MiB) on the sequence route, inside a form part: 413 like every other
+    // route. Just over, so the client has sent it all when the answer comes.
+    let huge = reqwest::multipart::Form::new()
+        .part("image", reqwest::multipart::Part::bytes(vec![0u8; (8 << 20) + (64 << 10)]).file_name("big.png"));
+    expect(413)(http.post(url("/v1/sessions/desk/sequences")).multipart(huge).send().await.unwrap());
+    // Ids that are not ids.
+    for bad in ["robot_id=a%0Ab&timestamp=0", "robot_id=a%00&timestamp=0", "robot_id=a&timestamp=NaN"] {
+        let r = post_raw(&format!("/v1/sessions/desk/frames?{bad}"), jpeg("slambook2-ch11/1.png").to_vec());
+        expect(400)(r.await.unwrap());
+    }
+    for id in [".", ".."] {
+        let r = http.post(url("/v1/sessions")).json(&serde_json::json!({ "id": id })).send().await.unwrap();
+        expect(400)(r);
+    }
+    // The descriptor id names the variant that computed the descriptor.
+    let embed = |q: &'static str| {
+        let (http, u) = (http.clone(), url(&format!("/v1/embed{q}")));
+        async move {
+            let r = http.post(u).body(jpeg("slambook2-ch11/1.png").to_vec()).send().await.unwrap();
+            let v: serde_json::Value = r.json().await.unwrap();
+            v["descriptor_id"].as_str().unwrap().to_string()
+        }
+    };
+    let (full, plain) = (embed("").await, embed("?attention=false&fusion=false").await);
+    assert_ne!(full, plain);
+    assert!(full.contains("+att+fus") && !plain.contains("+att") && !plain.contains("+fus"), "{full} {plain}");
+    assert_eq!(info["descriptor_id"], full.as_str());
     let dup = http.post(url("/v1/sessions")).json(&serde_json::json!({ "id": "desk" })).send().await.unwrap();
     expect(409)(dup);
     let bad_json =
@@ -346,4 +386,69 @@ async fn offline_sequence_job_finds_the_desk_loop() {
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!((report["frames"].as_u64(), report["positives"].as_u64()), (Some(10), Some(1)), "{report}");
     assert_eq!(report["recall_at_1"], 1.0, "{report}");
+}
+
+/// A server on `dir` whose model takes `size`x`size` inputs.
+async fn server_at(dir: &std::path::Path, size: u32) -> RunningServer {
+    let cfg = ServerConfig {
+        grpc_addr: "127.0.0.1:0".parse().unwrap(),
+        http_addr: "127.0.0.1:0".parse().unwrap(),
+        data_dir: dir.to_path_buf(),
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        limits: ImageLimits::default(),
+        max_body_bytes: 8 << 20,
+        max_jobs: 1,
+        search: Default::default(),
+    };
+    RunningServer::start(cfg, imagenet_model_at(size, size)).await.unwrap()
+}
+
+/// A session keeps the descriptor space it was made in. A server restarted with another input
+/// size refuses images for it over both APIs, naming both ids, and the session works again once
+/// its own model serves it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn images_for_a_session_of_another_model_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let http = reqwest::Client::new();
+    let add_image = |server: &RunningServer| {
+        let u = format!("http://{}/v1/sessions/space/frames?robot_id=r&timestamp=1", server.http_addr);
+        http.post(u).body(jpeg("slambook2-ch11/1.png").to_vec()).send()
+    };
+    let a = server_at(dir.path(), 224).await;
+    let created = http
+        .post(format!("http://{}/v1/sessions", a.http_addr))
+        .json(&serde_json::json!({ "id": "space" }))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(created.status(), 201);
+    let space_a = created.json::<serde_json::Value>().await.unwrap()["descriptor_id"].as_str().unwrap().to_string();
+    assert_eq!(add_image(&a).await.unwrap().status(), 201);
+    a.shutdown().await.unwrap();
+
+    let b = server_at(dir.path(), 112).await;
+    let space_b = b.service.engine.info().descriptor_id.clone();
+    assert_ne!(space_a, space_b);
+    let refused = add_image(&b).await.unwrap();
+    assert_eq!(refused.status(), 409);
+    let msg = refused.json::<serde_json::Value>().await.unwrap()["error"].as_str().unwrap().to_string();
+    assert!(msg.contains(&space_a) && msg.contains(&space_b), "{msg}");
+    let mut grpc = LoopdClient::connect(format!("http://{}", b.grpc_addr)).await.unwrap();
+    let req = frame_req("space", "r", 2.0, jpeg("slambook2-ch11/2.png"), pb::Scope::All);
+    assert_eq!(code(grpc.add_frame(req.clone()).await), tonic::Code::FailedPrecondition);
+    assert_eq!(code(grpc.add_and_query(req).await), tonic::Code::FailedPrecondition);
+    let query = pb::QueryRequest {
+        session_id: "space".into(),
+        content: Some(pb::query_request::Content::Image(jpeg("slambook2-ch11/2.png"))),
+        ..Default::default()
+    };
+    assert_eq!(code(grpc.query(query).await), tonic::Code::FailedPrecondition);
+    let info: serde_json::Value =
+        http.get(format!("http://{}/v1/sessions/space", b.http_addr)).send().await.unwrap().json().await.unwrap();
+    assert_eq!(info["frames"], 1, "nothing was added by the refused requests");
+    b.shutdown().await.unwrap();
+
+    let a = server_at(dir.path(), 224).await;
+    assert_eq!(add_image(&a).await.unwrap().status(), 201);
+    a.shutdown().await.unwrap();
 }

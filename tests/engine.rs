@@ -36,7 +36,7 @@ async fn sixty_four_concurrent_callers_each_get_their_own_descriptor() {
     // Each frame alone: one request at a time, so every forward pass has batch size 1.
     let mut alone = Vec::new();
     for f in &frames {
-        alone.push(engine.embed_image(f.clone(), Variant::FULL, None).await.unwrap());
+        alone.push(engine.embed_image(f.clone(), Variant::FULL).await.unwrap());
     }
     assert_eq!(engine.metrics().batch_size.max_bucket(), 1.0);
     let tasks: Vec<_> = frames
@@ -44,7 +44,7 @@ async fn sixty_four_concurrent_callers_each_get_their_own_descriptor() {
         .cloned()
         .map(|f| {
             let e = engine.clone();
-            tokio::spawn(async move { e.embed_image(f, Variant::FULL, None).await })
+            tokio::spawn(async move { e.embed_image(f, Variant::FULL).await })
         })
         .collect();
     for (i, t) in tasks.into_iter().enumerate() {
@@ -74,7 +74,7 @@ async fn a_flooded_queue_refuses_at_once_then_recovers() {
             let e = engine.clone();
             tokio::spawn(async move {
                 let t = Instant::now();
-                (e.embed_image(f, Variant::FULL, None).await, t.elapsed())
+                (e.embed_image(f, Variant::FULL).await, t.elapsed())
             })
         })
         .collect();
@@ -99,7 +99,7 @@ async fn a_flooded_queue_refuses_at_once_then_recovers() {
     assert_eq!(m.queued.load(std::sync::atomic::Ordering::Relaxed), 0, "admissions leaked");
     // Recovered: a later request is served normally.
     let f = corridor_frames(1).pop().unwrap();
-    assert_eq!(engine.embed_image(f, Variant::FULL, None).await.unwrap().len(), 2048);
+    assert_eq!(engine.embed_image(f, Variant::FULL).await.unwrap().len(), 2048);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -116,20 +116,15 @@ async fn a_cancelled_request_costs_no_forward_pass() {
     let kept = {
         let e = engine.clone();
         let f = frames.remove(0);
-        tokio::spawn(async move { e.embed_image(f, Variant::FULL, None).await })
+        tokio::spawn(async move { e.embed_image(f, Variant::FULL).await })
     };
     // Dropped by its caller (timeout) while waiting in the batch window.
     let given_up =
-        tokio::time::timeout(Duration::from_millis(100), engine.embed_image(frames.remove(0), Variant::FULL, None))
-            .await;
+        tokio::time::timeout(Duration::from_millis(100), engine.embed_image(frames.remove(0), Variant::FULL)).await;
     assert!(given_up.is_err(), "the request should still have been waiting");
-    // A deadline that passes inside the window is answered without a forward pass.
-    let expired =
-        engine.embed_image(frames.remove(0), Variant::FULL, Some(Instant::now() + Duration::from_millis(150)));
-    assert_eq!(expired.await, Err(EngineError::DeadlineExceeded));
     assert_eq!(kept.await.unwrap().unwrap().len(), 2048);
     let m = engine.metrics();
-    assert_eq!(m.cancelled.load(Relaxed), 2);
+    assert_eq!(m.cancelled.load(Relaxed), 1);
     assert_eq!(m.images.load(Relaxed), 1, "only the kept request was computed");
     assert_eq!(m.batch_size.count(), 1);
     assert_eq!(m.queued.load(Relaxed), 0);
@@ -138,10 +133,10 @@ async fn a_cancelled_request_costs_no_forward_pass() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_images_are_refused_by_the_engine_and_it_keeps_serving() {
     let engine = small_engine(EngineConfig { warm_up: false, ..Default::default() });
-    let err = engine.embed_image(bytes::Bytes::from_static(b"not an image"), Variant::FULL, None).await;
+    let err = engine.embed_image(bytes::Bytes::from_static(b"not an image"), Variant::FULL).await;
     assert!(matches!(err, Err(EngineError::Image(_))), "{err:?}");
     let f = corridor_frames(1).pop().unwrap();
-    assert!(engine.embed_image(f, Variant::FULL, None).await.is_ok());
+    assert!(engine.embed_image(f, Variant::FULL).await.is_ok());
     let text = engine.metrics().render_prometheus();
     assert!(text.contains("loopd_engine_images_total 1"), "{text}");
     assert!(text.contains("loopd_engine_batch_size_bucket{le=\"1\"} 1"), "{text}");

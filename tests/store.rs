@@ -2,8 +2,9 @@
 mod common;
 use common::*;
 use loopd::model::network::Variant;
-use loopd::store::index::Storage;
-use loopd::store::query::{LoopQuery, Pose, Scope};
+use loopd::store::query::{LoopQuery, Match, Pose, Scope};
+use loopd::store::record::FrameHeader;
+use loopd::store::Storage;
 use loopd::store::{NewFrame, Store, StoreError};
 use std::sync::OnceLock;
 
@@ -32,6 +33,23 @@ fn corridor() -> &'static Traversals {
     })
 }
 
+/// The store's calls by session name (the service looks a session up once and passes it on).
+async fn add(store: &Store, session: &str, frames: Vec<NewFrame>) -> Result<Vec<u64>, StoreError> {
+    store.add_frames(&store.session(session)?, frames).await
+}
+
+async fn search(store: &Store, session: &str, d: Vec<f32>, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
+    store.query(&store.session(session)?, d, q).await
+}
+
+async fn query_frame(store: &Store, session: &str, id: u64, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
+    store.query_frame(&store.session(session)?, id, q).await
+}
+
+fn stored_frame(store: &Store, session: &str, id: u64) -> Result<(FrameHeader, Vec<f32>), StoreError> {
+    store.session(session)?.frame(id)
+}
+
 fn frame(id: Option<u64>, robot: &str, t: f64, d: &[f32]) -> NewFrame {
     NewFrame {
         frame_id: id,
@@ -51,10 +69,10 @@ async fn two_robot_session(store: &Store, id: &str, storage: Storage) {
         .unwrap();
     let refs: Vec<NewFrame> =
         reference.iter().enumerate().map(|(i, d)| frame(Some(i as u64), "ref", i as f64, d)).collect();
-    store.add_frames(id, refs).await.unwrap();
+    add(store, id, refs).await.unwrap();
     let qs: Vec<NewFrame> =
         query.iter().enumerate().map(|(i, d)| frame(Some(1000 + i as u64), "query", 500.0 + i as f64, d)).collect();
-    store.add_frames(id, qs).await.unwrap();
+    add(store, id, qs).await.unwrap();
 }
 
 #[tokio::test]
@@ -68,7 +86,7 @@ async fn everything_survives_a_reopen_with_the_same_scores() {
         two_robot_session(&store, "f32", Storage::F32).await;
         for s in ["f16", "f32"] {
             for i in [0usize, 40, 110] {
-                before.push(store.query(s, corridor().0[i].clone(), &q).unwrap());
+                before.push(search(&store, s, corridor().0[i].clone(), &q).await.unwrap());
             }
         }
         assert_eq!(store.list().len(), 2);
@@ -77,7 +95,7 @@ async fn everything_survives_a_reopen_with_the_same_scores() {
     let mut after = Vec::new();
     for s in ["f16", "f32"] {
         for i in [0usize, 40, 110] {
-            after.push(store.query(s, corridor().0[i].clone(), &q).unwrap());
+            after.push(search(&store, s, corridor().0[i].clone(), &q).await.unwrap());
         }
     }
     assert_eq!(before, after, "matches and scores changed across a reopen");
@@ -87,7 +105,7 @@ async fn everything_survives_a_reopen_with_the_same_scores() {
     assert_eq!(info[0].robots, vec!["ref".to_string(), "query".to_string()]);
     assert!(info[0].bytes_on_disk < info[1].bytes_on_disk, "f16 must take less disk than f32");
     // Stored records come back whole.
-    let (h, d) = store.frame("f32", 1040).unwrap();
+    let (h, d) = stored_frame(&store, "f32", 1040).unwrap();
     assert_eq!((h.robot_id.as_str(), h.timestamp), ("query", 540.0));
     assert_eq!(h.metadata, Some(serde_json::json!({ "camera": "fisheye" })));
     let dot: f32 = d.iter().zip(&corridor().0[40]).map(|(a, b)| a * b).sum();
@@ -113,7 +131,7 @@ async fn corridor_query_frames_find_their_reference_frames() {
         let q: usize = q.trim().parse().unwrap();
         let refs: Vec<u64> = refs.split_whitespace().map(|r| r.parse().unwrap()).collect();
         let opts = LoopQuery { k: 1, robot_id: Some("query".into()), scope: Scope::OtherRobots, ..Default::default() };
-        let m = store.query_frame("c", 1000 + q as u64, &opts).unwrap();
+        let m = query_frame(&store, "c", 1000 + q as u64, &opts).await.unwrap();
         total += 1;
         hits += refs.contains(&m[0].frame_id) as usize;
     }
@@ -133,7 +151,7 @@ async fn deletion_gives_back_disk_and_memory() {
         store.delete_session("gone").await.unwrap();
         assert_eq!(store.delete_session("gone").await, Err(StoreError::SessionNotFound("gone".into())));
         assert!(matches!(
-            store.query("gone", corridor().0[0].clone(), &LoopQuery::default()),
+            search(&store, "gone", corridor().0[0].clone(), &LoopQuery::default()).await,
             Err(StoreError::SessionNotFound(_))
         ));
         assert_eq!(store.session_trees(), vec!["kept".to_string()]);
@@ -155,27 +173,29 @@ async fn exclusion_window_skips_the_robots_own_recent_frames() {
         .unwrap();
     // One robot driving the corridor: frame i at time 0.5 * i.
     let frames: Vec<NewFrame> = query.iter().enumerate().map(|(i, d)| frame(None, "r1", 0.5 * i as f64, d)).collect();
-    let ids = store.add_frames("w", frames).await.unwrap();
+    let ids = add(&store, "w", frames).await.unwrap();
     assert_eq!(ids, (0..111).collect::<Vec<u64>>(), "auto ids are consecutive");
     let last = query[110].clone();
     // Without a window the newest frame matches itself and its neighbours.
     let plain =
-        store.query("w", last.clone(), &LoopQuery { k: 3, robot_id: Some("r1".into()), ..Default::default() }).unwrap();
+        search(&store, "w", last.clone(), &LoopQuery { k: 3, robot_id: Some("r1".into()), ..Default::default() })
+            .await
+            .unwrap();
     assert_eq!(plain[0].frame_id, 110);
     let by_frames = LoopQuery { k: 20, robot_id: Some("r1".into()), exclude_last_frames: 10, ..Default::default() };
-    let m = store.query("w", last.clone(), &by_frames).unwrap();
+    let m = search(&store, "w", last.clone(), &by_frames).await.unwrap();
     assert_eq!(m.len(), 20);
     assert!(m.iter().all(|x| x.frame_id < 101), "{:?}", m.iter().map(|x| x.frame_id).collect::<Vec<_>>());
     let by_time = LoopQuery { k: 20, robot_id: Some("r1".into()), exclude_last_seconds: 10.0, ..Default::default() };
-    let m = store.query("w", last.clone(), &by_time).unwrap();
+    let m = search(&store, "w", last.clone(), &by_time).await.unwrap();
     assert!(m.iter().all(|x| x.timestamp <= 55.0 - 10.0));
     // Another robot is not affected by r1's window.
     let other = LoopQuery { k: 3, robot_id: Some("r2".into()), exclude_last_frames: 10, ..Default::default() };
-    assert_eq!(store.query("w", last.clone(), &other).unwrap()[0].frame_id, 110);
+    assert_eq!(search(&store, "w", last.clone(), &other).await.unwrap()[0].frame_id, 110);
     // Ranges
     let ranged =
         LoopQuery { k: 50, frame_id_range: Some((10, 20)), time_range: Some((6.0, 100.0)), ..Default::default() };
-    let m = store.query("w", last, &ranged).unwrap();
+    let m = search(&store, "w", last, &ranged).await.unwrap();
     assert_eq!(m.iter().map(|x| x.frame_id).min(), Some(12));
     assert_eq!(m.len(), 9);
 }
@@ -192,23 +212,23 @@ async fn scopes_with_three_robots() {
         .enumerate()
         .map(|(i, d)| frame(Some(5000 + i as u64), "third", 900.0 + i as f64, d))
         .collect();
-    store.add_frames("s", third).await.unwrap();
+    add(&store, "s", third).await.unwrap();
     let ask = |scope| LoopQuery { k: 50, robot_id: Some("query".into()), scope, ..Default::default() };
     let d = query[5].clone();
-    let same = store.query("s", d.clone(), &ask(Scope::SameRobot)).unwrap();
+    let same = search(&store, "s", d.clone(), &ask(Scope::SameRobot)).await.unwrap();
     assert!(same.iter().all(|m| m.robot_id == "query") && same.len() == 50);
-    let other = store.query("s", d.clone(), &ask(Scope::OtherRobots)).unwrap();
+    let other = search(&store, "s", d.clone(), &ask(Scope::OtherRobots)).await.unwrap();
     assert!(other.iter().all(|m| m.robot_id != "query"));
     assert!(other.iter().any(|m| m.robot_id == "ref") && other.iter().any(|m| m.robot_id == "third"));
     assert_eq!(other[0].robot_id, "third", "the identical frame of the third robot ranks first");
-    let all = store.query("s", d.clone(), &ask(Scope::All)).unwrap();
+    let all = search(&store, "s", d.clone(), &ask(Scope::All)).await.unwrap();
     assert!(all.windows(2).all(|w| w[0].score >= w[1].score), "ranked best first");
     let robots: std::collections::HashSet<_> = all.iter().map(|m| m.robot_id.as_str()).collect();
     assert_eq!(robots.len(), 3);
     let stranger = LoopQuery { k: 5, robot_id: Some("nobody".into()), scope: Scope::SameRobot, ..Default::default() };
-    assert!(store.query("s", d.clone(), &stranger).unwrap().is_empty());
+    assert!(search(&store, "s", d.clone(), &stranger).await.unwrap().is_empty());
     let strict = LoopQuery { k: 50, min_score: 0.999, ..Default::default() };
-    assert!(store.query("s", d, &strict).unwrap().iter().all(|m| m.score >= 0.999));
+    assert!(search(&store, "s", d, &strict).await.unwrap().iter().all(|m| m.score >= 0.999));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -230,7 +250,7 @@ async fn concurrent_writers_lose_nothing() {
                         let d = if w % 2 == 0 { &query[(w * 13 + i) % 111] } else { &reference[(w * 7 + i) % 111] };
                         // one frame per call, as a robot sends them
                         ids.extend(
-                            store.add_frames("c", vec![frame(None, &format!("robot{w}"), i as f64, d)]).await.unwrap(),
+                            add(&store, "c", vec![frame(None, &format!("robot{w}"), i as f64, d)]).await.unwrap(),
                         );
                     }
                     ids
@@ -267,32 +287,32 @@ async fn bad_writes_get_clear_errors_and_change_nothing() {
         .create_session(Some("no spaces/".into()), "x".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
         .await;
     assert!(matches!(bad_id, Err(StoreError::InvalidArgument(_))));
-    store.add_frames("b", vec![frame(Some(7), "r", 0.0, &query[0])]).await.unwrap();
+    add(&store, "b", vec![frame(Some(7), "r", 0.0, &query[0])]).await.unwrap();
     // A batch with a taken id is refused whole: its other frame is not stored either.
     let batch = vec![frame(Some(8), "r", 1.0, &query[1]), frame(Some(7), "r", 2.0, &query[2])];
-    assert_eq!(store.add_frames("b", batch).await, Err(StoreError::FrameExists("b".into(), 7)));
-    assert!(matches!(store.frame("b", 8), Err(StoreError::FrameNotFound(_, 8))));
-    let short = store.add_frames("b", vec![frame(None, "r", 0.0, &query[0][..100])]).await;
+    assert_eq!(add(&store, "b", batch).await, Err(StoreError::FrameExists("b".into(), 7)));
+    assert!(matches!(stored_frame(&store, "b", 8), Err(StoreError::FrameNotFound(_, 8))));
+    let short = add(&store, "b", vec![frame(None, "r", 0.0, &query[0][..100])]).await;
     assert!(matches!(&short, Err(StoreError::InvalidArgument(m)) if m.contains("100 values")), "{short:?}");
     let mut nan = query[3].clone();
     nan[5] = f32::NAN;
+    assert!(matches!(add(&store, "b", vec![frame(None, "r", 0.0, &nan)]).await, Err(StoreError::InvalidArgument(_))));
     assert!(matches!(
-        store.add_frames("b", vec![frame(None, "r", 0.0, &nan)]).await,
-        Err(StoreError::InvalidArgument(_))
-    ));
-    assert!(matches!(
-        store.add_frames("nope", vec![frame(None, "r", 0.0, &query[0])]).await,
+        add(&store, "nope", vec![frame(None, "r", 0.0, &query[0])]).await,
         Err(StoreError::SessionNotFound(_))
     ));
-    assert!(matches!(store.query("b", vec![0.0; 2048], &LoopQuery::default()), Err(StoreError::InvalidArgument(_))));
     assert!(matches!(
-        store.query("b", query[0].clone(), &LoopQuery { k: 5000, ..Default::default() }),
+        search(&store, "b", vec![0.0; 2048], &LoopQuery::default()).await,
         Err(StoreError::InvalidArgument(_))
     ));
-    assert!(matches!(store.query_frame("b", 99, &LoopQuery::default()), Err(StoreError::FrameNotFound(_, 99))));
+    assert!(matches!(
+        search(&store, "b", query[0].clone(), &LoopQuery { k: 5000, ..Default::default() }).await,
+        Err(StoreError::InvalidArgument(_))
+    ));
+    assert!(matches!(query_frame(&store, "b", 99, &LoopQuery::default()).await, Err(StoreError::FrameNotFound(_, 99))));
     // The stored frame is untouched.
     assert_eq!(store.list()[0].frames, 1);
-    let m = store.query("b", query[0].clone(), &LoopQuery::default()).unwrap();
+    let m = search(&store, "b", query[0].clone(), &LoopQuery::default()).await.unwrap();
     assert_eq!((m.len(), m[0].frame_id), (1, 7));
 }
 
@@ -341,8 +361,11 @@ async fn device_search_matches_host_search() {
     for storage in [Storage::F32, Storage::F16] {
         let (host_dir, dev_dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
         let host = Store::open(host_dir.path()).unwrap();
-        let dev = Store::open_with(dev_dir.path(), SearchConfig { device: Some(tch::Device::Cpu), device_min_rows: 0 })
-            .unwrap();
+        let dev = Store::open_with(
+            dev_dir.path(),
+            SearchConfig { device: Some(tch::Device::Cpu), device_min_rows: 0, ..Default::default() },
+        )
+        .unwrap();
         let queries = [
             LoopQuery { k: 5, ..Default::default() },
             LoopQuery { k: 5, robot_id: Some("query".into()), exclude_last_frames: 30, ..Default::default() },
@@ -364,8 +387,8 @@ async fn device_search_matches_host_search() {
         let compare = |round: &str| {
             for (qi, q) in queries.iter().enumerate() {
                 for d in [&query[3], &query[60], &query[110]] {
-                    let a = host.query("c", d.clone(), q).unwrap();
-                    let b = dev.query("c", d.clone(), q).unwrap();
+                    let a = host.session("c").unwrap().search(d.clone(), q, 2).unwrap();
+                    let b = dev.session("c").unwrap().search(d.clone(), q, 2).unwrap();
                     let ids = |m: &[loopd::store::query::Match]| m.iter().map(|m| m.frame_id).collect::<Vec<_>>();
                     // The device only proposes candidates; the host scores them again with the
                     // f32 query, so ranks and scores are the host's, for f16 sessions too.
@@ -397,7 +420,7 @@ async fn device_search_matches_host_search() {
                     frame(Some(5000 + i as u64), "third", 900.0 + i as f64, &mid)
                 })
                 .collect();
-            s.add_frames("c", extra).await.unwrap();
+            add(s, "c", extra).await.unwrap();
         }
         compare("after more frames");
         assert_eq!(dev.list()[0].frames, 262);
@@ -405,4 +428,83 @@ async fn device_search_matches_host_search() {
         assert_eq!(dev.session("c").unwrap().device_searches(), 2 * 4 * 3);
         assert_eq!(host.session("c").unwrap().device_searches(), 0);
     }
+}
+
+/// A write whose caller goes away mid-flush (client disconnect, gRPC deadline) is either wholly
+/// there, searchable, counted and visible, or absent: never on disk but unknown to the index.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dropped_write_is_never_a_ghost() {
+    let dir = tempfile::tempdir().unwrap();
+    let (query, _) = corridor();
+    {
+        let store = Store::open(dir.path()).unwrap();
+        store
+            .create_session(Some("g".into()), "g".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+            .await
+            .unwrap();
+        let s = store.session("g").unwrap();
+        for i in 0..5u64 {
+            // Polled once (the frame is written, its flush awaited), then dropped.
+            let write = store.add_frames(&s, vec![frame(Some(40 + i), "r", i as f64, &query[i as usize])]);
+            let _ = futures::FutureExt::now_or_never(write);
+        }
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        while s.info().frames < 5 && std::time::Instant::now() < deadline {
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+        assert_eq!(s.info().frames, 5, "frames written by dropped requests never became searchable");
+        for i in 0..5u64 {
+            let m = query_frame(&store, "g", 40 + i, &LoopQuery { k: 4, ..Default::default() }).await.unwrap();
+            assert_eq!(m.len(), 4);
+            assert!(stored_frame(&store, "g", 40 + i).is_ok());
+            let own = search(&store, "g", query[i as usize].clone(), &LoopQuery::default()).await.unwrap();
+            assert_eq!(own[0].frame_id, 40 + i);
+        }
+        // A client retrying the dropped write learns that it is stored, rather than storing it twice.
+        let retry = add(&store, "g", vec![frame(Some(42), "r", 2.0, &query[2])]).await;
+        assert_eq!(retry, Err(StoreError::FrameExists("g".into(), 42)));
+        let next = add(&store, "g", vec![frame(None, "r", 9.0, &query[9])]).await.unwrap();
+        assert_eq!(next, vec![45]);
+    }
+    let store = Store::open(dir.path()).unwrap();
+    assert_eq!(store.list()[0].frames, 6, "what was searchable before the restart is what comes back");
+}
+
+/// Equal scores rank the earlier frame first, whichever search thread saw it first
+/// (docs/storage.md: "ties: the earlier frame").
+#[test]
+fn equal_scores_rank_the_earlier_frame_first_with_any_number_of_threads() {
+    use loopd::store::index::SessionIndex;
+    let (query, _) = corridor();
+    // 6,000 identical rows: enough values for the search to split across threads.
+    let mut index = SessionIndex::new(2048, Storage::F16);
+    for i in 0..6000u64 {
+        index.push(i, "r", i as f64, None, &query[0]);
+    }
+    for threads in [1, 2, 4] {
+        for round in 0..10 {
+            let m = index.search(&query[0], &LoopQuery { k: 5, ..Default::default() }, threads);
+            let ids: Vec<u64> = m.iter().map(|m| m.frame_id).collect();
+            assert_eq!(ids, vec![0, 1, 2, 3, 4], "{threads} threads, round {round}");
+        }
+    }
+}
+
+/// A query by a stored frame takes every k the limit allows and never returns that frame.
+#[tokio::test]
+async fn a_stored_frame_query_takes_the_full_k_and_excludes_itself() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path()).unwrap();
+    two_robot_session(&store, "k", Storage::F16).await;
+    let max = LoopQuery { k: loopd::store::query::MAX_K, ..Default::default() };
+    let m = query_frame(&store, "k", 1005, &max).await.unwrap();
+    assert_eq!(m.len(), 221, "every other frame of the session");
+    assert!(m.iter().all(|m| m.frame_id != 1005));
+    let over = LoopQuery { k: loopd::store::query::MAX_K + 1, ..Default::default() };
+    assert!(
+        matches!(query_frame(&store, "k", 1005, &over).await, Err(StoreError::InvalidArgument(m)) if m.contains("k = 1001"))
+    );
+    let top = query_frame(&store, "k", 1005, &LoopQuery { k: 1, ..Default::default() }).await.unwrap();
+    assert_eq!(top.len(), 1);
+    assert_ne!(top[0].frame_id, 1005);
 }

@@ -6,6 +6,9 @@ use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 
+/// Longest error message sent back (client input echoed in it is cut).
+const MAX_MESSAGE_BYTES: usize = 1024;
+
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
     #[error("{0}")]
@@ -20,8 +23,9 @@ pub enum ApiError {
     Overloaded(String),
     #[error("{0}")]
     Unavailable(String),
+    /// The request is well formed but the target cannot take it (another descriptor space).
     #[error("{0}")]
-    DeadlineExceeded(String),
+    FailedPrecondition(String),
     #[error("{0}")]
     Internal(String),
 }
@@ -34,7 +38,6 @@ impl From<EngineError> for ApiError {
             EngineError::Image(_) => ApiError::InvalidArgument(msg),
             EngineError::Overloaded(_) => ApiError::Overloaded(msg),
             EngineError::Stopped => ApiError::Unavailable(msg),
-            EngineError::DeadlineExceeded => ApiError::DeadlineExceeded(msg),
             EngineError::Inference(_) => ApiError::Internal(msg),
         }
     }
@@ -48,6 +51,7 @@ impl From<StoreError> for ApiError {
             StoreError::SessionExists(_) | StoreError::FrameExists(..) => ApiError::AlreadyExists(msg),
             StoreError::InvalidArgument(_) => ApiError::InvalidArgument(msg),
             StoreError::Storage(_) => ApiError::Internal(msg),
+            StoreError::Stopped => ApiError::Unavailable(msg),
         }
     }
 }
@@ -61,20 +65,34 @@ impl ApiError {
             ApiError::TooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::Overloaded(_) => StatusCode::TOO_MANY_REQUESTS,
             ApiError::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
-            ApiError::DeadlineExceeded(_) => StatusCode::GATEWAY_TIMEOUT,
+            ApiError::FailedPrecondition(_) => StatusCode::CONFLICT,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
 
-    pub fn grpc_status(&self) -> tonic::Status {
+    /// The message as sent to clients: bounded, so an echoed oversized input cannot push a gRPC
+    /// status past the metadata limit.
+    pub fn message(&self) -> String {
         let msg = self.to_string();
+        if msg.len() <= MAX_MESSAGE_BYTES {
+            return msg;
+        }
+        let mut end = MAX_MESSAGE_BYTES;
+        while !msg.is_char_boundary(end) {
+            end -= 1;
+        }
+        format!("{}... ({} bytes in all)", &msg[..end], msg.len())
+    }
+
+    pub fn grpc_status(&self) -> tonic::Status {
+        let msg = self.message();
         match self {
             ApiError::InvalidArgument(_) | ApiError::TooLarge(_) => tonic::Status::invalid_argument(msg),
             ApiError::NotFound(_) => tonic::Status::not_found(msg),
             ApiError::AlreadyExists(_) => tonic::Status::already_exists(msg),
             ApiError::Overloaded(_) => tonic::Status::resource_exhausted(msg),
             ApiError::Unavailable(_) => tonic::Status::unavailable(msg),
-            ApiError::DeadlineExceeded(_) => tonic::Status::deadline_exceeded(msg),
+            ApiError::FailedPrecondition(_) => tonic::Status::failed_precondition(msg),
             ApiError::Internal(_) => tonic::Status::internal(msg),
         }
     }
@@ -92,6 +110,6 @@ impl IntoResponse for ApiError {
         if status.is_server_error() {
             tracing::error!(error = %self, "request failed");
         }
-        (status, Json(serde_json::json!({ "error": self.to_string(), "code": status.as_u16() }))).into_response()
+        (status, Json(serde_json::json!({ "error": self.message(), "code": status.as_u16() }))).into_response()
     }
 }

@@ -1,17 +1,12 @@
 //! gRPC (tonic): `proto/loopd/v1/loopd.proto` translated onto `LoopService`.
 use super::error::ApiError;
 use super::service::{Content, CreateSession, FrameInput, LoopService, QueryOverrides, QueryTarget};
-use crate::store::index::Storage;
+use crate::pb;
 use crate::store::query::{Match, Pose, Scope};
-use crate::store::SessionInfo;
+use crate::store::{SessionInfo, Storage};
 use std::pin::Pin;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
-
-pub mod pb {
-    tonic::include_proto!("loopd.v1");
-    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("loopd_descriptor");
-}
 
 pub use pb::loopd_server::LoopdServer;
 
@@ -164,8 +159,8 @@ impl pb::loopd_server::Loopd for GrpcApi {
             Some(pb::query_request::Content::FrameId(id)) => QueryTarget::Frame(id),
             None => return Err(Status::invalid_argument("a query needs an image, a descriptor or a frame_id")),
         };
-        let at = (r.timestamp != 0.0).then_some(r.timestamp);
-        let m = self.service.query(&r.session_id, Some(r.robot_id), at, target, &overrides(r.options)?).await?;
+        let m =
+            self.service.query(&r.session_id, Some(r.robot_id), r.timestamp, target, &overrides(r.options)?).await?;
         Ok(Response::new(pb::QueryResponse { matches: matches_to_pb(m) }))
     }
 

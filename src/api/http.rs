@@ -1,6 +1,7 @@
-//! HTTP (axum, JSON under /v1): the same operations as gRPC; `openapi.yaml` describes each route.
+//! HTTP (axum, JSON under /v1): the operations of `LoopService`, as gRPC has them, plus embedding,
+//! frame reads and offline sequence jobs; `openapi.yaml` describes each route.
 use super::error::ApiError;
-use super::jobs::{JobStatus, Jobs, SequenceRequest};
+use super::jobs::{JobStatus, SequenceRequest};
 use super::service::{Content, CreateSession, FrameInput, LoopService, QueryOverrides, QueryTarget};
 use crate::model::network::{Variant, DESCRIPTOR_DIM};
 use crate::store::query::{Match, Pose};
@@ -17,7 +18,6 @@ use std::sync::Arc;
 
 pub struct AppState {
     pub service: LoopService,
-    pub jobs: Jobs,
 }
 
 /// `max_body_bytes` bounds sequence uploads only; every other route takes at most one image
@@ -96,8 +96,8 @@ async fn embed(
     let Query(q) = q.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
     let body = body.map_err(|e| ApiError::TooLarge(e.body_text()))?;
     let variant = Variant { attention: q.attention.unwrap_or(true), fusion: q.fusion.unwrap_or(true) };
-    let descriptor = s.service.engine.embed_image(body, variant, None).await?;
-    Ok(Json(EmbedResponse { descriptor_id: s.service.engine.info().descriptor_id.clone(), descriptor }))
+    let (descriptor_id, descriptor) = s.service.embed(body, variant).await?;
+    Ok(Json(EmbedResponse { descriptor_id, descriptor }))
 }
 
 async fn create_session(
@@ -140,7 +140,7 @@ async fn get_frame(
     Path((id, frame_id)): Path<(String, String)>,
 ) -> Result<Json<FrameView>, ApiError> {
     let frame_id = parse_u64("frame_id", &frame_id)?;
-    let (h, _) = s.service.store.frame(&id, frame_id)?;
+    let h = s.service.frame(&id, frame_id)?;
     Ok(Json(FrameView { frame_id, robot_id: h.robot_id, timestamp: h.timestamp, pose: h.pose, metadata: h.metadata }))
 }
 
@@ -183,44 +183,82 @@ fn fields_from_text(map: HashMap<String, String>, image: Option<Bytes>) -> Resul
 }
 
 async fn read_fields(req: Request) -> Result<FrameFields, ApiError> {
-    let ctype = req.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
-    if ctype.starts_with("application/json") {
+    if content_type(&req).starts_with("application/json") {
         let Json(f) = Json::<FrameFields>::from_request(req, &()).await.map_err(json_error)?;
         return Ok(f);
     }
-    if ctype.starts_with("multipart/form-data") {
-        let mut mp = Multipart::from_request(req, &()).await.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
-        let (mut map, mut image) = (HashMap::new(), None);
-        while let Some(field) = mp.next_field().await.map_err(multipart_error)? {
-            let name = field.name().unwrap_or("").to_string();
-            if name == "image" {
-                image = Some(field.bytes().await.map_err(multipart_error)?);
-            } else {
-                map.insert(name, field.text().await.map_err(multipart_error)?);
-            }
+    let mut form = read_form(req, &["image"]).await?;
+    let image = match (form.files.pop(), form.body) {
+        (Some(_), _) if !form.files.is_empty() => {
+            return Err(ApiError::InvalidArgument("one 'image' part per frame".into()));
         }
-        return fields_from_text(map, image);
-    }
-    let Query(map) = Query::<HashMap<String, String>>::try_from_uri(req.uri())
+        (Some(file), _) => Some(file.data),
+        (None, body) => body.filter(|b| !b.is_empty()),
+    };
+    fields_from_text(form.fields, image)
+}
+
+fn content_type(req: &Request) -> String {
+    req.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string()
+}
+
+/// One uploaded file of a form.
+pub struct FormFile {
+    /// The form part's name (`image`, `archive`).
+    pub part: String,
+    /// The client's file name, if it sent one.
+    pub file_name: Option<String>,
+    pub data: Bytes,
+}
+
+/// A request as fields and files: a multipart form (parts named in `file_parts` are files, the
+/// rest text fields), or a raw body with the fields in the query string. The one form reader
+/// of the HTTP API: size limits answer 413 wherever they are hit.
+pub struct Form {
+    pub fields: HashMap<String, String>,
+    pub files: Vec<FormFile>,
+    /// The raw body of a non-multipart request.
+    pub body: Option<Bytes>,
+}
+
+async fn read_form(req: Request, file_parts: &[&str]) -> Result<Form, ApiError> {
+    let Query(mut fields) = Query::<HashMap<String, String>>::try_from_uri(req.uri())
         .map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
-    let body = Bytes::from_request(req, &()).await.map_err(|e| ApiError::TooLarge(e.body_text()))?;
-    fields_from_text(map, (!body.is_empty()).then_some(body))
+    if !content_type(&req).starts_with("multipart/form-data") {
+        let body = Bytes::from_request(req, &()).await.map_err(|e| body_error(e.status(), e.body_text()))?;
+        return Ok(Form { fields, files: Vec::new(), body: Some(body) });
+    }
+    let mut mp = Multipart::from_request(req, &()).await.map_err(|e| body_error(e.status(), e.body_text()))?;
+    let mut files = Vec::new();
+    while let Some(field) = mp.next_field().await.map_err(multipart_error)? {
+        let part = field.name().unwrap_or("").to_string();
+        if file_parts.contains(&part.as_str()) {
+            let file_name = field.file_name().filter(|n| !n.is_empty()).map(str::to_string);
+            files.push(FormFile { part, file_name, data: field.bytes().await.map_err(multipart_error)? });
+        } else {
+            let data = field.bytes().await.map_err(multipart_error)?;
+            let text = String::from_utf8(data.to_vec())
+                .map_err(|_| ApiError::InvalidArgument(format!("field {part} is not text")))?;
+            fields.insert(part, text);
+        }
+    }
+    Ok(Form { fields, files, body: None })
+}
+
+fn body_error(status: StatusCode, text: String) -> ApiError {
+    if status == StatusCode::PAYLOAD_TOO_LARGE {
+        ApiError::TooLarge(text)
+    } else {
+        ApiError::InvalidArgument(text)
+    }
 }
 
 fn json_error(e: axum::extract::rejection::JsonRejection) -> ApiError {
-    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-        ApiError::TooLarge(e.body_text())
-    } else {
-        ApiError::InvalidArgument(e.body_text())
-    }
+    body_error(e.status(), e.body_text())
 }
 
 fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
-    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-        ApiError::TooLarge(e.body_text())
-    } else {
-        ApiError::InvalidArgument(e.body_text())
-    }
+    body_error(e.status(), e.body_text())
 }
 
 fn content(f: &mut FrameFields) -> Result<Content, ApiError> {
@@ -234,9 +272,14 @@ fn content(f: &mut FrameFields) -> Result<Content, ApiError> {
 
 fn frame_input(mut f: FrameFields) -> Result<(FrameInput, QueryOverrides), ApiError> {
     let content = content(&mut f)?;
-    let robot_id = f.robot_id.ok_or_else(|| ApiError::InvalidArgument("robot_id is required".into()))?;
-    let timestamp = f.timestamp.ok_or_else(|| ApiError::InvalidArgument("timestamp is required".into()))?;
-    let input = FrameInput { robot_id, timestamp, frame_id: f.frame_id, pose: f.pose, metadata: f.metadata, content };
+    let input = FrameInput {
+        robot_id: f.robot_id.unwrap_or_default(),
+        timestamp: f.timestamp,
+        frame_id: f.frame_id,
+        pose: f.pose,
+        metadata: f.metadata,
+        content,
+    };
     Ok((input, f.options.unwrap_or_default()))
 }
 
@@ -302,12 +345,14 @@ async fn start_sequence(
     Path(id): Path<String>,
     req: Request,
 ) -> Result<(StatusCode, Json<JobCreated>), ApiError> {
-    s.service.store.session(&id)?;
-    let seq = SequenceRequest::from_request(req).await?;
-    let job_id = s.jobs.start(s.service.clone(), id, seq)?;
+    s.service.session(&id)?;
+    let form = read_form(req, &["image", "archive"]).await?;
+    let files = form.files.into_iter().map(|f| (f.part, f.file_name, f.data)).collect();
+    let seq = SequenceRequest::from_form(form.fields, files, form.body)?;
+    let job_id = s.service.start_sequence(&id, seq)?;
     Ok((StatusCode::ACCEPTED, Json(JobCreated { status_url: format!("/v1/jobs/{job_id}"), job_id })))
 }
 
 async fn job_status(State(s): State<Arc<AppState>>, Path(job_id): Path<String>) -> Result<Json<JobStatus>, ApiError> {
-    s.jobs.status(&job_id).map(Json).ok_or_else(|| ApiError::NotFound(format!("job '{job_id}' not found")))
+    Ok(Json(s.service.job(&job_id)?))
 }

@@ -4,13 +4,12 @@ use super::error::ApiError;
 use super::service::{Content, FrameInput, LoopService, QueryOverrides};
 use crate::files::{is_image, natural_key};
 use crate::store::query::Scope;
-use axum::body::Bytes;
-use axum::extract::{FromRequest, Multipart, Request};
-use axum::http::header;
+use bytes::Bytes;
 use futures::StreamExt;
+use parking_lot::Mutex;
 use serde::Serialize;
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 /// Finished jobs whose status stays available.
 const KEPT_JOBS: usize = 100;
@@ -66,7 +65,9 @@ fn untar(bytes: &[u8], out: &mut Vec<(String, Bytes)>) -> Result<(), ApiError> {
         if !entry.header().entry_type().is_file() || !is_image(&name) {
             continue;
         }
-        let mut data = Vec::with_capacity(entry.size() as usize);
+        // Never sized from the header (it may claim terabytes): the entry can hold no more
+        // than the archive, which the body limit bounds.
+        let mut data = Vec::new();
         std::io::Read::read_to_end(&mut entry, &mut data).map_err(bad)?;
         found.push((name, Bytes::from(data)));
     }
@@ -77,30 +78,21 @@ fn untar(bytes: &[u8], out: &mut Vec<(String, Bytes)>) -> Result<(), ApiError> {
 }
 
 impl SequenceRequest {
-    pub async fn from_request(req: Request) -> Result<Self, ApiError> {
-        let ctype = req.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
-        let axum::extract::Query(mut fields) = axum::extract::Query::<HashMap<String, String>>::try_from_uri(req.uri())
-            .map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
+    /// From a form's text fields, its files (part name, client file name, bytes) and, for a
+    /// request that was not a form, its raw body (a tar archive).
+    pub fn from_form(
+        mut fields: HashMap<String, String>,
+        files: Vec<(String, Option<String>, Bytes)>,
+        body: Option<Bytes>,
+    ) -> Result<Self, ApiError> {
         let mut images = Vec::new();
-        if ctype.starts_with("multipart/form-data") {
-            let mut mp =
-                Multipart::from_request(req, &()).await.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
-            while let Some(field) = mp.next_field().await.map_err(|e| ApiError::InvalidArgument(e.body_text()))? {
-                let name = field.name().unwrap_or("").to_string();
-                let file = field.file_name().unwrap_or("").to_string();
-                let data = field.bytes().await.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
-                match name.as_str() {
-                    "image" => images.push((if file.is_empty() { format!("{}", images.len()) } else { file }, data)),
-                    "archive" => untar(&data, &mut images)?,
-                    _ => {
-                        let text = String::from_utf8(data.to_vec())
-                            .map_err(|_| ApiError::InvalidArgument(format!("field {name} is not text")))?;
-                        fields.insert(name, text);
-                    }
-                }
+        for (part, file_name, data) in files {
+            match part.as_str() {
+                "archive" => untar(&data, &mut images)?,
+                _ => images.push((file_name.unwrap_or_else(|| images.len().to_string()), data)),
             }
-        } else {
-            let body = Bytes::from_request(req, &()).await.map_err(|e| ApiError::TooLarge(e.body_text()))?;
+        }
+        if let Some(body) = body {
             untar(&body, &mut images)?;
         }
         if images.is_empty() {
@@ -115,16 +107,21 @@ impl SequenceRequest {
             )));
         }
         let mut req = SequenceRequest { images, robot_id: "sequence".into(), min_score: 0.0, exclude_last_frames: 3 };
+        // Order is applied last, whatever the field order.
+        let order = fields.remove("order");
         for (k, v) in fields {
             let bad = || ApiError::InvalidArgument(format!("field {k}: bad value '{v}'"));
             match k.as_str() {
                 "robot_id" if !v.is_empty() => req.robot_id = v,
                 "min_score" => req.min_score = v.parse().ok().filter(|s: &f32| s.is_finite()).ok_or_else(bad)?,
                 "exclude_last_frames" => req.exclude_last_frames = v.parse().map_err(|_| bad())?,
-                "order" if v == "name" => req.images.sort_by_cached_key(|(n, _)| natural_key(n)),
-                "order" if v == "sent" => {}
                 _ => return Err(bad()),
             }
+        }
+        match order.as_deref() {
+            Some("name") => req.images.sort_by_cached_key(|(n, _)| natural_key(n)),
+            None | Some("sent") => {}
+            Some(other) => return Err(ApiError::InvalidArgument(format!("field order: bad value '{other}'"))),
         }
         Ok(req)
     }
@@ -143,12 +140,12 @@ impl Jobs {
     }
 
     pub fn status(&self, id: &str) -> Option<JobStatus> {
-        Some(self.jobs.lock().expect("jobs lock").get(id)?.lock().expect("job lock").clone())
+        Some(self.jobs.lock().get(id)?.lock().clone())
     }
 
     pub fn start(&self, service: LoopService, session: String, seq: SequenceRequest) -> Result<String, ApiError> {
-        let mut jobs = self.jobs.lock().expect("jobs lock");
-        let running = jobs.values().filter(|j| matches!(j.lock().expect("job lock").state, JobState::Running)).count();
+        let mut jobs = self.jobs.lock();
+        let running = jobs.values().filter(|j| matches!(j.lock().state, JobState::Running)).count();
         if running >= self.max_running {
             return Err(ApiError::Overloaded(format!("{running} sequence jobs running; at most {}", self.max_running)));
         }
@@ -156,7 +153,7 @@ impl Jobs {
         if jobs.len() >= KEPT_JOBS {
             let mut finished: Vec<(u64, String)> = jobs
                 .iter()
-                .filter(|(_, j)| !matches!(j.lock().expect("job lock").state, JobState::Running))
+                .filter(|(_, j)| !matches!(j.lock().state, JobState::Running))
                 .map(|(k, _)| (k.trim_start_matches("job-").parse().unwrap_or(0), k.clone()))
                 .collect();
             finished.sort();
@@ -187,7 +184,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
     let mut embedded = futures::stream::iter(seq.images.into_iter().enumerate())
         .map(|(i, (name, bytes))| {
             let engine = engine.clone();
-            async move { (i, name, engine.embed_image(bytes, crate::model::network::Variant::FULL, None).await) }
+            async move { (i, name, engine.embed_image(bytes, crate::model::network::Variant::FULL).await) }
         })
         .buffered(width);
     let opts = QueryOverrides {
@@ -203,7 +200,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
         let descriptor = match result {
             Ok(d) => d,
             Err(e) => {
-                let mut s = status.lock().expect("job lock");
+                let mut s = status.lock();
                 s.errors.push(format!("{name}: {e}"));
                 s.done += 1;
                 continue;
@@ -211,7 +208,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
         };
         let frame = FrameInput {
             robot_id: seq.robot_id.clone(),
-            timestamp: i as f64,
+            timestamp: Some(i as f64),
             frame_id: None,
             pose: None,
             metadata: Some(serde_json::json!({ "name": name, "index": i })),
@@ -219,7 +216,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
         };
         match service.add_and_query(&session, frame, &opts).await {
             Ok((frame_id, matches)) => {
-                let mut s = status.lock().expect("job lock");
+                let mut s = status.lock();
                 if let Some(m) = matches.first() {
                     if let Some((mi, mname)) = names.get(&m.frame_id) {
                         s.loops.push(LoopClosure {
@@ -242,7 +239,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
             }
         }
     }
-    let mut s = status.lock().expect("job lock");
+    let mut s = status.lock();
     match failed {
         Some(e) => {
             s.errors.push(e);

@@ -1,11 +1,11 @@
 //! One process, both APIs: gRPC (tonic) and HTTP (axum) over one engine and one store.
-use super::grpc::{pb, GrpcApi, LoopdServer};
+use super::grpc::{GrpcApi, LoopdServer};
 use super::http::{router, AppState};
-use super::jobs::Jobs;
 use super::service::LoopService;
 use crate::engine::{Engine, EngineConfig};
 use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
+use crate::pb;
 use crate::store::{SearchConfig, Store};
 use anyhow::{Context, Result};
 use std::net::SocketAddr;
@@ -42,7 +42,7 @@ impl RunningServer {
                 .with_context(|| format!("opening store in {}", cfg.data_dir.display()))?,
         );
         let engine = Engine::start(model, cfg.engine.clone(), cfg.limits)?;
-        let service = LoopService { engine, store };
+        let service = LoopService::new(engine, store, cfg.max_jobs);
         let (shutdown, rx) = tokio::sync::watch::channel(false);
 
         let http = tokio::net::TcpListener::bind(cfg.http_addr)
@@ -53,7 +53,7 @@ impl RunningServer {
             .with_context(|| format!("binding gRPC {}", cfg.grpc_addr))?;
         let (http_addr, grpc_addr) = (http.local_addr()?, grpc.local_addr()?);
 
-        let state = Arc::new(AppState { service: service.clone(), jobs: Jobs::new(cfg.max_jobs) });
+        let state = Arc::new(AppState { service: service.clone() });
         let app = router(state, cfg.max_body_bytes);
         let mut http_rx = rx.clone();
         let http_task = tokio::spawn(async move {

@@ -1,10 +1,12 @@
-//! What both APIs do, written once: gRPC and HTTP only translate to and from these calls.
+//! What both APIs do, written once: gRPC and HTTP only translate to and from these calls, and
+//! reach the engine, the store and the jobs through nothing else.
 use super::error::ApiError;
+use super::jobs::{JobStatus, Jobs, SequenceRequest};
 use crate::engine::Engine;
 use crate::model::network::{Variant, DESCRIPTOR_DIM};
-use crate::store::index::Storage;
 use crate::store::query::{LoopQuery, Match, Pose, Scope};
-use crate::store::{NewFrame, Session, SessionInfo, Store};
+use crate::store::record::FrameHeader;
+use crate::store::{NewFrame, Session, SessionInfo, Storage, Store, MAX_CLIENT_FRAME_ID};
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -13,6 +15,7 @@ use std::sync::Arc;
 pub struct LoopService {
     pub engine: Engine,
     pub store: Arc<Store>,
+    pub jobs: Arc<Jobs>,
 }
 
 /// A frame's picture: image bytes to embed, or a descriptor computed elsewhere.
@@ -62,13 +65,62 @@ impl QueryOverrides {
     }
 }
 
+/// A keyframe as a client sends it, over either API.
 pub struct FrameInput {
     pub robot_id: String,
-    pub timestamp: f64,
+    /// Required (the exclusion windows and time ranges depend on it); optional here so that the
+    /// policy lives in one place, [`FrameInput::check`].
+    pub timestamp: Option<f64>,
     pub frame_id: Option<u64>,
     pub pose: Option<Pose>,
     pub metadata: Option<serde_json::Value>,
     pub content: Content,
+}
+
+impl FrameInput {
+    /// Everything the request carries, checked before it takes a model slot.
+    fn check(&self) -> Result<f64, ApiError> {
+        check_robot_id(&self.robot_id)?;
+        let t = self.timestamp.ok_or_else(|| ApiError::InvalidArgument("timestamp is required".into()))?;
+        if !t.is_finite() {
+            return Err(ApiError::InvalidArgument("timestamp must be a finite number".into()));
+        }
+        if self.frame_id.is_some_and(|id| id > MAX_CLIENT_FRAME_ID) {
+            return Err(ApiError::InvalidArgument(format!("frame_id must be at most {MAX_CLIENT_FRAME_ID}")));
+        }
+        if self.metadata.as_ref().is_some_and(|m| !m.is_object()) {
+            return Err(ApiError::InvalidArgument("metadata must be a JSON object".into()));
+        }
+        if let Some(p) = &self.pose {
+            let v = [p.x, p.y, p.z, p.qx, p.qy, p.qz, p.qw];
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err(ApiError::InvalidArgument("pose values must be finite numbers".into()));
+            }
+        }
+        Ok(t)
+    }
+
+    /// The stored frame, once its descriptor is known.
+    fn into_new_frame(self, timestamp: f64, descriptor: Vec<f32>) -> NewFrame {
+        NewFrame {
+            frame_id: self.frame_id,
+            robot_id: self.robot_id,
+            timestamp,
+            pose: self.pose,
+            metadata: self.metadata,
+            descriptor,
+        }
+    }
+}
+
+fn check_robot_id(robot: &str) -> Result<(), ApiError> {
+    if robot.is_empty() {
+        return Err(ApiError::InvalidArgument("robot_id is required".into()));
+    }
+    if robot.len() > 128 || robot.chars().any(char::is_control) {
+        return Err(ApiError::InvalidArgument("robot_id must be 1-128 bytes without control characters".into()));
+    }
+    Ok(())
 }
 
 pub enum QueryTarget {
@@ -86,9 +138,30 @@ pub struct CreateSession {
 }
 
 impl LoopService {
+    pub fn new(engine: Engine, store: Arc<Store>, max_jobs: usize) -> Self {
+        let service = Self { engine, store, jobs: Arc::new(Jobs::new(max_jobs)) };
+        service.report_foreign_sessions();
+        service
+    }
+
+    /// Says at start which stored sessions this server's model cannot add to or query by image.
+    fn report_foreign_sessions(&self) {
+        let info = self.engine.info();
+        for s in self.store.list() {
+            if !info.compatible(&s.meta.descriptor_id) {
+                tracing::warn!(
+                    session = %s.meta.id,
+                    session_descriptor_id = %s.meta.descriptor_id,
+                    server_descriptor_id = %info.descriptor_id,
+                    "session was built by another model: its frames are kept, but images sent to it will be refused"
+                );
+            }
+        }
+    }
+
     pub async fn create_session(&self, req: CreateSession) -> Result<SessionInfo, ApiError> {
         let defaults = req.default_query.apply(&LoopQuery::default());
-        check_query(&defaults)?;
+        defaults.validate().map_err(ApiError::InvalidArgument)?;
         let descriptor_id = self.engine.info().descriptor_id.clone();
         let meta = self
             .store
@@ -116,44 +189,59 @@ impl LoopService {
         Ok(self.store.delete_session(id).await?)
     }
 
-    async fn descriptor(&self, content: Content) -> Result<Vec<f32>, ApiError> {
+    /// An image's unit descriptor under `variant`, with the id of its descriptor space.
+    pub async fn embed(&self, image: Bytes, variant: Variant) -> Result<(String, Vec<f32>), ApiError> {
+        let descriptor = self.engine.embed_image(image, variant).await?;
+        Ok((self.engine.info().variant_id(variant).to_string(), descriptor))
+    }
+
+    /// A stored frame's header (searchable frames only).
+    pub fn frame(&self, session: &str, frame_id: u64) -> Result<FrameHeader, ApiError> {
+        Ok(self.store.session(session)?.frame(frame_id)?.0)
+    }
+
+    /// Images embedded here may only go to sessions of this server's descriptor space.
+    fn check_space(&self, s: &Session) -> Result<(), ApiError> {
+        let info = self.engine.info();
+        if info.compatible(&s.meta.descriptor_id) {
+            return Ok(());
+        }
+        Err(ApiError::FailedPrecondition(format!(
+            "session '{}' holds descriptors of '{}', but this server computes '{}': images sent to it would \
+             mix descriptor spaces (run a server with the session's model, or create a new session)",
+            s.meta.id, s.meta.descriptor_id, info.descriptor_id
+        )))
+    }
+
+    async fn descriptor(&self, s: &Session, content: Content) -> Result<Vec<f32>, ApiError> {
         match content {
-            Content::Image(bytes) => Ok(self.engine.embed_image(bytes, Variant::FULL, None).await?),
+            Content::Image(bytes) => {
+                self.check_space(s)?;
+                Ok(self.engine.embed_image(bytes, Variant::FULL).await?)
+            }
             Content::Descriptor(d) => Ok(d),
         }
     }
 
-    /// The frame's session, after the checks that need no forward pass (unknown session first).
-    fn check_frame(&self, session: &str, f: &FrameInput) -> Result<Arc<Session>, ApiError> {
+    /// The session and the frame's timestamp, after every check that needs no forward pass.
+    fn check_frame(&self, session: &str, f: &FrameInput) -> Result<(Arc<Session>, f64), ApiError> {
         let s = self.store.session(session)?;
-        if f.robot_id.is_empty() {
-            return Err(ApiError::InvalidArgument("robot_id is required".into()));
+        let t = f.check()?;
+        if matches!(f.content, Content::Image(_)) {
+            self.check_space(&s)?;
         }
-        if f.metadata.as_ref().is_some_and(|m| !m.is_object()) {
-            return Err(ApiError::InvalidArgument("metadata must be a JSON object".into()));
-        }
-        Ok(s)
+        Ok((s, t))
     }
 
-    pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {
-        self.check_frame(session, &f)?;
-        let descriptor = self.descriptor(f.content).await?;
-        self.store_frame(session, f.robot_id, f.timestamp, f.frame_id, f.pose, f.metadata, descriptor).await
+    pub async fn add_frame(&self, session: &str, mut f: FrameInput) -> Result<u64, ApiError> {
+        let (s, t) = self.check_frame(session, &f)?;
+        let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
+        let descriptor = self.descriptor(&s, content).await?;
+        self.store_frame(&s, f.into_new_frame(t, descriptor)).await
     }
 
-    #[allow(clippy::too_many_arguments)]
-    async fn store_frame(
-        &self,
-        session: &str,
-        robot_id: String,
-        timestamp: f64,
-        frame_id: Option<u64>,
-        pose: Option<Pose>,
-        metadata: Option<serde_json::Value>,
-        descriptor: Vec<f32>,
-    ) -> Result<u64, ApiError> {
-        let frame = NewFrame { frame_id, robot_id, timestamp, pose, metadata, descriptor };
-        let ids = self.store.add_frames(session, vec![frame]).await?;
+    async fn store_frame(&self, s: &Arc<Session>, frame: NewFrame) -> Result<u64, ApiError> {
+        let ids = self.store.add_frames(s, vec![frame]).await?;
         ids.first().copied().ok_or_else(|| ApiError::Internal("no frame id returned".into()))
     }
 
@@ -168,13 +256,16 @@ impl LoopService {
         let s = self.store.session(session)?;
         let mut q = options.apply(&s.meta.default_query);
         q.robot_id = robot_id.filter(|r| !r.is_empty());
+        if let Some(r) = &q.robot_id {
+            check_robot_id(r)?;
+        }
         q.at_time = at_time;
-        check_query(&q)?;
+        q.validate().map_err(ApiError::InvalidArgument)?;
         match target {
-            QueryTarget::Frame(id) => Ok(self.store.query_frame(session, id, &q)?),
+            QueryTarget::Frame(id) => Ok(self.store.query_frame(&s, id, &q).await?),
             QueryTarget::Content(c) => {
-                let d = self.descriptor(c).await?;
-                Ok(self.store.query(session, d, &q)?)
+                let d = self.descriptor(&s, c).await?;
+                Ok(self.store.query(&s, d, &q).await?)
             }
         }
     }
@@ -183,29 +274,30 @@ impl LoopService {
     pub async fn add_and_query(
         &self,
         session: &str,
-        f: FrameInput,
+        mut f: FrameInput,
         options: &QueryOverrides,
     ) -> Result<(u64, Vec<Match>), ApiError> {
-        let s = self.check_frame(session, &f)?;
+        let (s, t) = self.check_frame(session, &f)?;
         let mut q = options.apply(&s.meta.default_query);
         q.robot_id = Some(f.robot_id.clone());
-        q.at_time = Some(f.timestamp);
-        check_query(&q)?;
-        let descriptor = self.descriptor(f.content).await?;
-        let matches = self.store.query(session, descriptor.clone(), &q)?;
-        let id = self.store_frame(session, f.robot_id, f.timestamp, f.frame_id, f.pose, f.metadata, descriptor).await?;
+        q.at_time = Some(t);
+        q.validate().map_err(ApiError::InvalidArgument)?;
+        let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
+        let descriptor = self.descriptor(&s, content).await?;
+        let matches = self.store.query(&s, descriptor.clone(), &q).await?;
+        let id = self.store_frame(&s, f.into_new_frame(t, descriptor)).await?;
         Ok((id, matches))
     }
-}
 
-fn check_query(q: &LoopQuery) -> Result<(), ApiError> {
-    if q.k == 0 || q.k > crate::store::query::MAX_K {
-        return Err(ApiError::InvalidArgument(format!("k must be 1..={}", crate::store::query::MAX_K)));
+    /// Starts an offline sequence job on a session; its id is returned at once.
+    pub fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
+        let s = self.store.session(session)?;
+        self.check_space(&s)?;
+        check_robot_id(&seq.robot_id)?;
+        self.jobs.start(self.clone(), s.meta.id.clone(), seq)
     }
-    if !q.min_score.is_finite() || !q.exclude_last_seconds.is_finite() || q.exclude_last_seconds < 0.0 {
-        return Err(ApiError::InvalidArgument(
-            "min_score and exclude_last_seconds must be finite (seconds >= 0)".into(),
-        ));
+
+    pub fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {
+        self.jobs.status(job_id).ok_or_else(|| ApiError::NotFound(format!("job '{job_id}' not found")))
     }
-    Ok(())
 }

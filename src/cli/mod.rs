@@ -27,7 +27,7 @@ pub struct Cli {
 
 #[derive(Subcommand)]
 pub enum Command {
-    /// Run the server (HTTP) on a local data directory.
+    /// Run the server (gRPC and HTTP) on a local data directory.
     Serve(serve::ServeArgs),
     /// Weight file tools.
     #[command(subcommand)]
@@ -53,10 +53,10 @@ pub struct ModelArgs {
     #[arg(long, env = "LOOPD_DTYPE", value_enum, default_value = "f32")]
     pub dtype: DType,
     /// Network input size: N or WxH.
-    #[arg(long, default_value = "224", value_parser = parse_input_size)]
+    #[arg(long, env = "LOOPD_INPUT_SIZE", default_value = "224", value_parser = parse_input_size)]
     pub input_size: (u32, u32),
     /// stretch to the input size, or keep the aspect ratio inside it.
-    #[arg(long, value_enum, default_value = "stretch")]
+    #[arg(long, env = "LOOPD_RESIZE", value_enum, default_value = "stretch")]
     pub resize: ResizeMode,
 }
 

@@ -30,7 +30,7 @@ pub struct ServeArgs {
     #[arg(long, env = "LOOPD_MAX_DELAY_MS", default_value_t = 5)]
     pub max_delay_ms: u64,
     /// Frames admitted at once (decoding, queued, running); beyond it: RESOURCE_EXHAUSTED / 429.
-    #[arg(long, env = "LOOPD_QUEUE", default_value_t = 256)]
+    #[arg(long, env = "LOOPD_QUEUE_CAPACITY", default_value_t = 256)]
     pub queue_capacity: usize,
     #[arg(long, env = "LOOPD_MAX_IMAGE_BYTES", default_value_t = 16 << 20)]
     pub max_image_bytes: usize,
@@ -52,6 +52,10 @@ pub struct ServeArgs {
     /// Sessions with fewer frames search on the host even when a device is set.
     #[arg(long, env = "LOOPD_SEARCH_DEVICE_MIN_FRAMES", default_value_t = 4096)]
     pub search_device_min_frames: usize,
+    /// Loop searches running at once, on blocking threads off the request executor (default:
+    /// number of cores); more wait their turn.
+    #[arg(long, env = "LOOPD_SEARCH_WORKERS")]
+    pub search_workers: Option<usize>,
 }
 
 impl ServeArgs {
@@ -62,7 +66,12 @@ impl ServeArgs {
             "cpu" => None,
             other => Some(parse_device(other)?),
         };
-        Ok(SearchConfig { device, device_min_rows: self.search_device_min_frames })
+        let defaults = SearchConfig::default();
+        Ok(SearchConfig {
+            device,
+            device_min_rows: self.search_device_min_frames,
+            max_concurrent: self.search_workers.unwrap_or(defaults.max_concurrent).max(1),
+        })
     }
 
     pub fn server_config(&self) -> ServerConfig {

@@ -13,7 +13,6 @@ use tokio::sync::oneshot;
 pub(super) struct Job {
     pub input: Tensor,
     pub variant: Variant,
-    pub deadline: Option<Instant>,
     pub admitted: Instant,
     pub reply: oneshot::Sender<Result<Vec<f32>, EngineError>>,
 }
@@ -28,20 +27,10 @@ pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: s
                 Err(RecvTimeoutError::Timeout) | Err(RecvTimeoutError::Disconnected) => break,
             }
         }
-        let now = Instant::now();
-        // A caller that gave up, or whose deadline passed, costs no forward pass.
-        let mut live = Vec::with_capacity(jobs.len());
-        for j in jobs {
-            if j.reply.is_closed() {
-                metrics.cancelled.fetch_add(1, Relaxed);
-            } else if j.deadline.is_some_and(|d| d <= now) {
-                metrics.cancelled.fetch_add(1, Relaxed);
-                let _ = j.reply.send(Err(EngineError::DeadlineExceeded));
-            } else {
-                live.push(j);
-            }
-        }
-        let mut jobs = live;
+        // A caller that gave up (client gone, gRPC deadline passed) costs no forward pass.
+        let before = jobs.len();
+        jobs.retain(|j| !j.reply.is_closed());
+        metrics.cancelled.fetch_add((before - jobs.len()) as u64, Relaxed);
         while !jobs.is_empty() {
             // One forward pass per (input size, variant): inputs must stack.
             let (size, variant) = (jobs[0].input.size(), jobs[0].variant);

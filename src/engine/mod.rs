@@ -51,8 +51,6 @@ pub enum EngineError {
     Overloaded(usize),
     #[error("inference engine has stopped")]
     Stopped,
-    #[error("deadline passed before the frame was processed")]
-    DeadlineExceeded,
     #[error("{0}")]
     Image(#[from] ImageError),
     #[error("inference failed: {0}")]
@@ -72,7 +70,13 @@ pub struct Engine {
 /// What the engine computes, for clients and stored sessions.
 #[derive(Debug, Clone)]
 pub struct EngineInfo {
+    /// The descriptor space of the full network (what sessions store).
     pub descriptor_id: String,
+    /// Each ablation variant's descriptor space.
+    pub variant_ids: Vec<(Variant, String)>,
+    /// The full network's id as loopd 0.1 named it (before weight hashes): sessions created
+    /// then by this same configuration stay usable.
+    pub legacy_descriptor_id: String,
     pub preprocess: Preprocess,
     pub limits: ImageLimits,
     pub device: String,
@@ -99,12 +103,26 @@ fn warm_up(model: &Model, max_batch: usize) -> anyhow::Result<()> {
     Ok(())
 }
 
+impl EngineInfo {
+    /// The descriptor space of `variant`.
+    pub fn variant_id(&self, variant: Variant) -> &str {
+        self.variant_ids.iter().find(|(v, _)| *v == variant).map_or(&self.descriptor_id, |(_, id)| id)
+    }
+
+    /// Whether a session of descriptor space `id` may take this engine's (full network) descriptors.
+    pub fn compatible(&self, id: &str) -> bool {
+        id == self.descriptor_id || id == self.legacy_descriptor_id
+    }
+}
+
 impl Engine {
     /// Moves the model onto its own thread and warms it up there (if asked for).
     pub fn start(model: Model, cfg: EngineConfig, limits: ImageLimits) -> anyhow::Result<Self> {
         let cfg = EngineConfig { max_batch: cfg.max_batch.max(1), queue_capacity: cfg.queue_capacity.max(1), ..cfg };
         let info = Arc::new(EngineInfo {
-            descriptor_id: model.config.descriptor_id(),
+            descriptor_id: model.descriptor_id(Variant::FULL),
+            variant_ids: Variant::ALL.iter().map(|&v| (v, model.descriptor_id(v))).collect(),
+            legacy_descriptor_id: model.config.legacy_descriptor_id(Variant::FULL),
             preprocess: model.config.preprocess.clone(),
             limits,
             device: device_name(model.device),
@@ -158,13 +176,9 @@ impl Engine {
     }
 
     /// Decodes `bytes` on a worker and returns the frame's unit descriptor.
-    /// Dropping the future (or passing `deadline`) before the forward pass costs no forward pass.
-    pub async fn embed_image(
-        &self,
-        bytes: bytes::Bytes,
-        variant: Variant,
-        deadline: Option<Instant>,
-    ) -> Result<Vec<f32>, EngineError> {
+    /// Dropping the future (a client gone, a gRPC deadline passed) before the forward pass costs
+    /// no forward pass.
+    pub async fn embed_image(&self, bytes: bytes::Bytes, variant: Variant) -> Result<Vec<f32>, EngineError> {
         let admission = self.admit()?;
         let admitted = Instant::now();
         let input = {
@@ -174,30 +188,25 @@ impl Engine {
                 .await
                 .map_err(|e| EngineError::Inference(format!("decoder worker failed: {e}")))??
         };
-        self.submit(input, variant, deadline, admitted, admission).await
+        self.submit(input, variant, admitted, admission).await
     }
 
-    /// Embeds an already preprocessed input ([3, H, W], see `model::preprocess::to_input`).
-    pub async fn embed_input(
-        &self,
-        input: Tensor,
-        variant: Variant,
-        deadline: Option<Instant>,
-    ) -> Result<Vec<f32>, EngineError> {
+    /// Embeds an already preprocessed input ([3, H, W], see `model::preprocess::to_input`): the
+    /// engine benchmark measures batching without decoding through it.
+    pub async fn embed_input(&self, input: Tensor, variant: Variant) -> Result<Vec<f32>, EngineError> {
         let admission = self.admit()?;
-        self.submit(input, variant, deadline, Instant::now(), admission).await
+        self.submit(input, variant, Instant::now(), admission).await
     }
 
     async fn submit(
         &self,
         input: Tensor,
         variant: Variant,
-        deadline: Option<Instant>,
         admitted: Instant,
         admission: Admission,
     ) -> Result<Vec<f32>, EngineError> {
         let (reply, rx) = oneshot::channel();
-        let job = Job { input, variant, deadline, admitted, reply };
+        let job = Job { input, variant, admitted, reply };
         self.tx.try_send(job).map_err(|e| match e {
             TrySendError::Full(_) => EngineError::Overloaded(self.cfg.queue_capacity),
             TrySendError::Disconnected(_) => EngineError::Stopped,

@@ -6,7 +6,7 @@
 //! to that order.
 use super::gt::GroundTruth;
 use super::metrics::{evaluate, QueryResult, Report};
-use crate::api::grpc::pb;
+use crate::pb;
 use anyhow::{bail, Context, Result};
 
 pub async fn evaluate_session(

@@ -7,8 +7,9 @@ use crate::engine::{Engine, EngineConfig};
 use crate::model::network::Variant;
 use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
-use crate::store::index::{SessionIndex, Storage};
+use crate::store::index::SessionIndex;
 use crate::store::query::LoopQuery;
+use crate::store::Storage;
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
@@ -81,7 +82,7 @@ pub async fn embed_paths(
             let (engine, done) = (engine.clone(), done.clone());
             async move {
                 let bytes = tokio::fs::read(&path).await.with_context(|| format!("reading {}", path.display()))?;
-                let d = engine.embed_image(bytes.into(), variant, None).await?;
+                let d = engine.embed_image(bytes.into(), variant).await?;
                 done();
                 anyhow::Ok(d)
             }
@@ -93,7 +94,7 @@ pub async fn embed_paths(
 
 /// Descriptors of `files` (rows in order) through the engine, from the cache when possible.
 pub fn embed_files(engine: &Engine, files: &[PathBuf], setup: &EmbedSetup, label: &str) -> Result<Vec<Vec<f32>>> {
-    let key = cache_key(files, &engine.info().descriptor_id, setup.variant, setup.weights);
+    let key = cache_key(files, engine.info().variant_id(setup.variant), setup.variant, setup.weights);
     let cache = setup.cache_dir.map(|d| d.join(format!("{key:016x}.f32")));
     if let Some(bytes) = cache.as_ref().and_then(|p| std::fs::read(p).ok()) {
         let values: Vec<f32> = bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
@@ -163,22 +164,31 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
     for (i, d) in ref_desc.iter().enumerate() {
         index.push(i as u64, "ref", i as f64, None, d);
     }
-    let results: Vec<QueryResult> = (0..nq)
-        .map(|i| {
-            let (q, range) = match &query_desc {
-                Some(qd) => (&qd[i], None),
-                // One sequence: only earlier frames outside the exclusion window.
-                None if i > spec.exclude => (&ref_desc[i], Some((0, (i - spec.exclude - 1) as u64))),
-                None => return QueryResult { query: i, best: None },
-            };
-            let opts = LoopQuery { k: 1, frame_id_range: range, ..Default::default() };
-            let best = index.search(q, &opts, 1).first().map(|m| (m.frame_id as usize, m.score));
-            QueryResult { query: i, best }
-        })
-        .collect();
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let results: Vec<QueryResult> = match &query_desc {
+        // Two traversals: every query has the same options, so they go as one batch.
+        Some(qd) => index
+            .search_batch(qd, &LoopQuery { k: 1, ..Default::default() }, threads)
+            .iter()
+            .enumerate()
+            .map(|(i, m)| QueryResult { query: i, best: m.first().map(|m| (m.frame_id as usize, m.score)) })
+            .collect(),
+        // One sequence: only earlier frames outside the exclusion window, a range per query.
+        None => (0..nq)
+            .map(|i| {
+                if i <= spec.exclude {
+                    return QueryResult { query: i, best: None };
+                }
+                let range = Some((0, (i - spec.exclude - 1) as u64));
+                let opts = LoopQuery { k: 1, frame_id_range: range, ..Default::default() };
+                let best = index.search(&ref_desc[i], &opts, 1).first().map(|m| (m.frame_id as usize, m.score));
+                QueryResult { query: i, best }
+            })
+            .collect(),
+    };
     let report = evaluate(&results, &gt, spec.tolerance);
     let out = EvalOutput {
-        descriptor_id: engine.info().descriptor_id.clone(),
+        descriptor_id: engine.info().variant_id(setup.variant).to_string(),
         variant: setup.variant.name().to_string(),
         sequence: spec.sequence.display().to_string(),
         query_sequence: spec.query_sequence.map(|p| p.display().to_string()),

@@ -1,4 +1,5 @@
 //! What a network is built from: backbone layout, the paper's additions, input size.
+use super::network::Variant;
 use serde::{Deserialize, Serialize};
 
 /// Where a stage's stride-2 sits in its first bottleneck block.
@@ -34,10 +35,6 @@ pub enum Normalization {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelConfig {
     pub stride_layout: StrideLayout,
-    /// Multiscale channel + spatial attention after each stage.
-    pub attention: bool,
-    /// layer1 -> layer4 fusion.
-    pub fusion: bool,
     /// Hidden width of the channel attention's fully connected layer is C / reduction.
     pub channel_reduction: i64,
     pub preprocess: Preprocess,
@@ -59,27 +56,38 @@ impl Default for Preprocess {
 
 impl Default for ModelConfig {
     fn default() -> Self {
-        Self {
-            stride_layout: StrideLayout::V1,
-            attention: true,
-            fusion: true,
-            channel_reduction: 16,
-            preprocess: Preprocess::default(),
-        }
+        Self { stride_layout: StrideLayout::V1, channel_reduction: 16, preprocess: Preprocess::default() }
     }
 }
 
 impl ModelConfig {
-    /// A short id that names the descriptor space: sessions refuse descriptors of another.
-    pub fn descriptor_id(&self) -> String {
+    /// Names the descriptor space: everything that changes a descriptor is in it (weights and
+    /// heads by the hash of the file holding them, variant, input size, resize, normalisation,
+    /// pooling). Sessions refuse descriptors computed under another id.
+    pub fn descriptor_id(&self, variant: Variant, weights_sha256: &str) -> String {
+        format!(
+            "{}-{}-{}-w{}",
+            self.legacy_descriptor_id(variant),
+            match self.preprocess.normalization {
+                Normalization::Caffe => "caffe",
+                Normalization::Torch => "torch",
+            },
+            POOLING,
+            &weights_sha256[..weights_sha256.len().min(12)]
+        )
+    }
+
+    /// The id sessions were created with before weight hashes were part of it (loopd 0.1,
+    /// ImageNet weights, identity heads): such sessions stay usable by the same configuration.
+    pub fn legacy_descriptor_id(&self, variant: Variant) -> String {
         format!(
             "resnet50-{}{}{}-{}x{}-{}",
             match self.stride_layout {
                 StrideLayout::V1 => "v1",
                 StrideLayout::V15 => "v1.5",
             },
-            if self.attention { "+att" } else { "" },
-            if self.fusion { "+fus" } else { "" },
+            if variant.attention { "+att" } else { "" },
+            if variant.fusion { "+fus" } else { "" },
             self.preprocess.width,
             self.preprocess.height,
             match self.preprocess.resize {
@@ -89,6 +97,9 @@ impl ModelConfig {
         )
     }
 }
+
+/// How the final feature map becomes a vector (global average pooling, then L2).
+const POOLING: &str = "gap";
 
 /// Parses "224" or "320x240" (width x height).
 pub fn parse_input_size(s: &str) -> Result<(u32, u32), String> {
@@ -105,5 +116,44 @@ pub fn parse_input_size(s: &str) -> Result<(u32, u32), String> {
             let n = parse(s)?;
             Ok((n, n))
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every setting that changes a descriptor changes the id; nothing else does.
+    #[test]
+    fn every_descriptor_setting_changes_the_id() {
+        let base = ModelConfig::default();
+        let id = |c: &ModelConfig, v: Variant, w: &str| c.descriptor_id(v, w);
+        let reference = id(&base, Variant::FULL, "aaaaaaaaaaaaaaaa");
+        let mut variants = vec![
+            id(&base, Variant::FULL, "bbbbbbbbbbbbbbbb"),
+            id(&base, Variant::BACKBONE, "aaaaaaaaaaaaaaaa"),
+            id(&base, Variant { attention: true, fusion: false }, "aaaaaaaaaaaaaaaa"),
+            id(&base, Variant { attention: false, fusion: true }, "aaaaaaaaaaaaaaaa"),
+        ];
+        let changed = [
+            ModelConfig { stride_layout: StrideLayout::V15, ..base.clone() },
+            ModelConfig { preprocess: Preprocess { width: 112, ..base.preprocess.clone() }, ..base.clone() },
+            ModelConfig { preprocess: Preprocess { height: 112, ..base.preprocess.clone() }, ..base.clone() },
+            ModelConfig {
+                preprocess: Preprocess { resize: ResizeMode::Keep, ..base.preprocess.clone() },
+                ..base.clone()
+            },
+            ModelConfig {
+                preprocess: Preprocess { normalization: Normalization::Torch, ..base.preprocess.clone() },
+                ..base.clone()
+            },
+        ];
+        variants.extend(changed.iter().map(|c| id(c, Variant::FULL, "aaaaaaaaaaaaaaaa")));
+        for (i, v) in variants.iter().enumerate() {
+            assert_ne!(v, &reference, "change {i} kept the id");
+        }
+        let distinct: std::collections::HashSet<_> = variants.iter().collect();
+        assert_eq!(distinct.len(), variants.len());
+        assert_eq!(reference, id(&base.clone(), Variant::FULL, "aaaaaaaaaaaaaaaa"), "the id is stable");
     }
 }

@@ -24,6 +24,8 @@ pub struct Model {
     pub config: ModelConfig,
     pub device: Device,
     pub dtype: DType,
+    /// SHA-256 (hex) of the weight file loaded; "none" for a model built without one.
+    pub weights_sha256: String,
     vs: VarStore,
     net: Network,
 }
@@ -34,7 +36,7 @@ impl Model {
         dtype.check(device)?;
         let vs = VarStore::new(Device::Cpu);
         let net = Network::new(&vs.root(), &config);
-        Ok(Self { config, device, dtype, vs, net })
+        Ok(Self { config, device, dtype, weights_sha256: "none".into(), vs, net })
     }
 
     /// Loads a loopd weight file; its metadata fixes the stride layout and normalisation.
@@ -48,6 +50,7 @@ impl Model {
         }
         let mut model = Self::new(config, Device::Cpu, DType::F32)?;
         let report = weights::load_into(&model.vs, &file)?;
+        model.weights_sha256 = file.sha256.clone();
         model.to(device, dtype)?;
         Ok((model, report))
     }
@@ -59,6 +62,11 @@ impl Model {
         self.device = device;
         self.dtype = dtype;
         Ok(())
+    }
+
+    /// The descriptor space this model's `variant` computes (see `ModelConfig::descriptor_id`).
+    pub fn descriptor_id(&self, variant: Variant) -> String {
+        self.config.descriptor_id(variant, &self.weights_sha256)
     }
 
     pub fn var_store(&self) -> &VarStore {

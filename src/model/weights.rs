@@ -2,6 +2,7 @@
 use super::network::HEAD_PREFIXES;
 use anyhow::{bail, Context, Result};
 use safetensors::{tensor::TensorView, Dtype, SafeTensors};
+use sha2::Digest;
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::Path;
 use tch::{nn::VarStore, Kind, Tensor};
@@ -15,6 +16,8 @@ pub const FORMAT_NAME: &str = "loopd-weights/1";
 pub struct WeightFile {
     pub metadata: HashMap<String, String>,
     pub tensors: Vec<(String, Tensor)>,
+    /// SHA-256 of the file's bytes (hex): part of the descriptor id of what it computes.
+    pub sha256: String,
 }
 
 impl WeightFile {
@@ -35,7 +38,8 @@ impl WeightFile {
             let t = Tensor::from_data_size(view.data(), &shape, kind).to_kind(Kind::Float);
             tensors.push((name, t));
         }
-        Ok(Self { metadata: meta.metadata().clone().unwrap_or_default(), tensors })
+        let sha256 = sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
+        Ok(Self { metadata: meta.metadata().clone().unwrap_or_default(), tensors, sha256 })
     }
 
     /// Writes f32 tensors (sorted by name) and the metadata.

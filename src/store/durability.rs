@@ -6,7 +6,13 @@
 use std::sync::mpsc;
 use tokio::sync::oneshot;
 
-type Waiter = oneshot::Sender<Result<(), String>>;
+/// What the flusher runs once a write's flush has finished, before it answers the writer.
+pub type AfterFlush = Box<dyn FnOnce(&Result<(), String>) + Send>;
+
+struct Waiter {
+    reply: oneshot::Sender<Result<(), String>>,
+    after: Option<AfterFlush>,
+}
 
 pub struct GroupCommit {
     tx: Option<mpsc::Sender<Waiter>>,
@@ -25,7 +31,10 @@ impl GroupCommit {
                     // Every waiter's insert happened before it queued, so this flush covers it.
                     let result = db.flush().map(|_| ()).map_err(|e| e.to_string());
                     for w in waiters {
-                        let _ = w.send(result.clone());
+                        if let Some(after) = w.after {
+                            after(&result);
+                        }
+                        let _ = w.reply.send(result.clone());
                     }
                 }
             })
@@ -35,10 +44,32 @@ impl GroupCommit {
 
     /// Resolves once everything written before the call is on disk.
     pub async fn durable(&self) -> Result<(), String> {
-        let (tx, rx) = oneshot::channel();
-        let sender = self.tx.as_ref().ok_or_else(|| "flush thread stopped".to_string())?;
-        sender.send(tx).map_err(|_| "flush thread stopped".to_string())?;
-        rx.await.map_err(|_| "flush thread stopped".to_string())?
+        self.durable_then(None).await
+    }
+
+    /// As [`GroupCommit::durable`], and `after` runs on the flusher with the flush's result
+    /// whether or not the caller is still waiting: a write and what must follow its flush
+    /// (publishing it to the index) cannot be split by a dropped request.
+    pub fn durable_then(&self, after: Option<AfterFlush>) -> impl std::future::Future<Output = Result<(), String>> {
+        let (reply, rx) = oneshot::channel();
+        // Queued now, not at the first poll: the caller's writes are already in sled.
+        let stopped = || "flush thread stopped".to_string();
+        let waiter = Waiter { reply, after };
+        let queued = match self.tx.as_ref() {
+            Some(tx) => tx.send(waiter).map_err(|mpsc::SendError(w)| w),
+            None => Err(waiter),
+        }
+        .map_err(|w| {
+            // No flush will come: the follow-up still learns that the write failed.
+            if let Some(after) = w.after {
+                after(&Err(stopped()));
+            }
+            stopped()
+        });
+        async move {
+            queued?;
+            rx.await.map_err(|_| stopped())?
+        }
     }
 }
 

@@ -2,27 +2,10 @@
 use super::device::{DeviceRows, HostRows};
 use super::kernels::{dots_f16, dots_f32, dots_many_f16, dots_many_f32};
 use super::query::{LoopQuery, Match, Pose, Scope};
-use serde::{Deserialize, Serialize};
+use super::record::Storage;
+use ordered_float::OrderedFloat;
+use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap};
-
-/// How a session keeps its descriptors (on disk and in memory).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Storage {
-    /// Half the bytes, twice the search speed; cosine error ~1e-3.
-    #[default]
-    F16,
-    F32,
-}
-
-impl Storage {
-    pub fn bytes_per_value(self) -> usize {
-        match self {
-            Storage::F16 => 2,
-            Storage::F32 => 4,
-        }
-    }
-}
 
 enum Rows {
     F16(Vec<u16>),
@@ -52,7 +35,7 @@ pub struct SessionIndex {
 }
 
 struct DeviceSearch {
-    rows: std::sync::Mutex<DeviceRows>,
+    rows: parking_lot::Mutex<DeviceRows>,
     /// Below this many rows the host kernels answer (a device round trip costs more).
     min_rows: usize,
     /// Searches the device answered (a failed one falls back to the host and is not counted).
@@ -86,13 +69,14 @@ impl SessionIndex {
     /// The host rows stay the source of truth; the device copy is topped up before each search.
     pub fn search_on(&mut self, device: tch::Device, min_rows: usize) {
         let rows = DeviceRows::new(device, self.storage() == Storage::F16, self.dim);
-        self.device = Some(DeviceSearch { rows: std::sync::Mutex::new(rows), min_rows, answered: Default::default() });
+        self.device =
+            Some(DeviceSearch { rows: parking_lot::Mutex::new(rows), min_rows, answered: Default::default() });
     }
 
     /// Copies the rows to the search device now (at start-up) rather than at the first query.
     pub fn upload(&self) {
         if let Some(dev) = &self.device {
-            if let Err(e) = dev.rows.lock().expect("device rows").sync(self.host_rows()) {
+            if let Err(e) = dev.rows.lock().sync(self.host_rows()) {
                 tracing::warn!(error = %e, "copying rows to the search device failed; searching on the host");
             }
         }
@@ -178,11 +162,6 @@ impl SessionIndex {
         })
     }
 
-    pub fn frame(&self, frame_id: u64) -> Option<(&FrameMeta, &str)> {
-        let f = &self.frames[*self.by_frame.get(&frame_id)?];
-        Some((f, &self.robots[f.robot as usize]))
-    }
-
     /// Top-k rows by dot product with `q` that pass the query's filters, best first.
     pub fn search(&self, q: &[f32], opts: &LoopQuery, threads: usize) -> Vec<Match> {
         let filter = Filter::new(self, opts);
@@ -205,7 +184,7 @@ impl SessionIndex {
             }
             for (i, &score) in out.iter().enumerate() {
                 // Score first: the filter is only evaluated for would-be results.
-                if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
+                if score >= opts.min_score && heap.would_take(score, s + i) && filter.allows(s + i) {
                     heap.push(score, s + i);
                 }
             }
@@ -242,7 +221,7 @@ impl SessionIndex {
             }
             for (i, row_scores) in out.chunks_exact(b).enumerate() {
                 for (heap, &score) in heaps.iter_mut().zip(row_scores) {
-                    if score >= opts.min_score && heap.would_take(score) && filter.allows(s + i) {
+                    if score >= opts.min_score && heap.would_take(score, s + i) && filter.allows(s + i) {
                         heap.push(score, s + i);
                     }
                 }
@@ -254,7 +233,7 @@ impl SessionIndex {
         }
         heaps
             .into_iter()
-            .map(|mut h| h.sorted().into_iter().map(|(score, row)| self.to_match(score, row)).collect())
+            .map(|h| h.sorted().into_iter().map(|(score, row)| self.to_match(score, row)).collect())
             .collect()
     }
 
@@ -269,7 +248,7 @@ impl SessionIndex {
     ) -> Option<Vec<Vec<(f32, usize)>>> {
         let dev = self.device.as_ref().filter(|d| self.frames.len() >= d.min_rows)?;
         let n = self.frames.len();
-        let mut rows = dev.rows.lock().expect("device rows");
+        let mut rows = dev.rows.lock();
         // How far a device score may be from the host's: half-precision products and outputs.
         let eps = match self.storage() {
             Storage::F16 => 4e-3,
@@ -310,7 +289,7 @@ impl SessionIndex {
                         .map(|row| (self.host_dot(q, row), row))
                         .filter(|&(score, _)| score >= opts.min_score)
                         .collect();
-                    exact.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+                    exact.sort_by_key(|&(score, row)| Reverse(rank_key(score, row)));
                     exact.truncate(k);
                     picked.push(exact);
                 }
@@ -401,6 +380,7 @@ struct Filter<'a> {
     exclude_after_time: Option<f64>,
     time_range: Option<(f64, f64)>,
     frame_id_range: Option<(u64, u64)>,
+    exclude_frame: Option<u64>,
 }
 
 impl<'a> Filter<'a> {
@@ -421,6 +401,7 @@ impl<'a> Filter<'a> {
             exclude_after_time,
             time_range: q.time_range,
             frame_id_range: q.frame_id_range,
+            exclude_frame: q.exclude_frame,
         }
     }
 
@@ -448,33 +429,22 @@ impl<'a> Filter<'a> {
         if self.frame_id_range.is_some_and(|(a, b)| f.frame_id < a || f.frame_id > b) {
             return false;
         }
-        true
+        self.exclude_frame != Some(f.frame_id)
     }
 }
 
-/// Bounded min-heap of (score, row); ties broken by the earlier row.
+/// Bounded min-heap of the best (score, row). Of equal scores the earlier row ranks higher, in
+/// every order rows arrive in, so results do not depend on which search thread saw a row first.
 struct TopK {
     k: usize,
-    heap: BinaryHeap<std::cmp::Reverse<(Score, usize)>>,
+    heap: BinaryHeap<Reverse<RankKey>>,
 }
 
-#[derive(Clone, Copy)]
-struct Score(f32);
-impl PartialEq for Score {
-    fn eq(&self, o: &Self) -> bool {
-        self.cmp(o).is_eq()
-    }
-}
-impl Eq for Score {}
-impl PartialOrd for Score {
-    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
-        Some(self.cmp(o))
-    }
-}
-impl Ord for Score {
-    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
-        self.0.total_cmp(&o.0)
-    }
+/// Higher ranks first: a better score, then an earlier row.
+type RankKey = (OrderedFloat<f32>, Reverse<usize>);
+
+fn rank_key(score: f32, row: usize) -> RankKey {
+    (OrderedFloat(score), Reverse(row))
 }
 
 impl TopK {
@@ -482,33 +452,54 @@ impl TopK {
         Self { k, heap: BinaryHeap::with_capacity(k + 1) }
     }
 
-    fn would_take(&self, score: f32) -> bool {
-        self.heap.len() < self.k || self.heap.peek().is_some_and(|m| score > m.0 .0 .0)
+    fn would_take(&self, score: f32, row: usize) -> bool {
+        self.heap.len() < self.k || self.heap.peek().is_some_and(|m| rank_key(score, row) > m.0)
     }
 
     fn push(&mut self, score: f32, row: usize) {
-        if !self.would_take(score) {
+        if !self.would_take(score, row) {
             return;
         }
-        self.heap.push(std::cmp::Reverse((Score(score), usize::MAX - row)));
+        self.heap.push(Reverse(rank_key(score, row)));
         if self.heap.len() > self.k {
             self.heap.pop();
         }
     }
 
     fn merge(&mut self, other: TopK) {
-        for (score, row) in other.into_vec() {
-            self.push(score, row);
+        for Reverse((score, Reverse(row))) in other.heap {
+            self.push(score.0, row);
         }
     }
 
-    fn into_vec(self) -> Vec<(f32, usize)> {
-        self.heap.into_iter().map(|std::cmp::Reverse((s, r))| (s.0, usize::MAX - r)).collect()
+    /// Best first.
+    fn sorted(self) -> Vec<(f32, usize)> {
+        self.heap.into_sorted_vec().into_iter().map(|Reverse((score, Reverse(row)))| (score.0, row)).collect()
     }
+}
 
-    fn sorted(&mut self) -> Vec<(f32, usize)> {
-        let mut v = std::mem::replace(self, TopK::new(self.k)).into_vec();
-        v.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-        v
+#[cfg(test)]
+mod tests {
+    use super::TopK;
+
+    /// Equal scores keep the earlier rows whatever the arrival order (as with several threads).
+    #[test]
+    fn ties_keep_the_earlier_rows_in_any_arrival_order() {
+        let mut late_first = TopK::new(2);
+        for row in [9, 7, 3, 5, 1] {
+            late_first.push(0.5, row);
+        }
+        assert_eq!(late_first.sorted(), vec![(0.5, 1), (0.5, 3)]);
+        // Two workers' heaps merged, the one holding later rows first.
+        let (mut a, mut b) = (TopK::new(2), TopK::new(2));
+        [8, 9].into_iter().for_each(|r| a.push(0.5, r));
+        [0, 1].into_iter().for_each(|r| b.push(0.5, r));
+        let mut merged = TopK::new(2);
+        merged.merge(a);
+        merged.merge(b);
+        assert_eq!(merged.sorted(), vec![(0.5, 0), (0.5, 1)]);
+        let mut mixed = TopK::new(3);
+        [(0.1, 0), (0.9, 4), (0.5, 2), (0.9, 3)].into_iter().for_each(|(s, r)| mixed.push(s, r));
+        assert_eq!(mixed.sorted(), vec![(0.9, 3), (0.9, 4), (0.5, 2)]);
     }
 }

@@ -5,17 +5,30 @@
 //! (checked at run time), plain Rust otherwise.
 use half::f16;
 
+/// The shape every single-query kernel relies on: `out.len()` rows of `q.len()` values.
+/// Checked in release builds too: the SIMD kernels read `rows` through raw pointers.
+fn check_shape(dim: usize, rows: usize, out: usize) {
+    assert!(
+        dim > 0 && out.checked_mul(dim) == Some(rows),
+        "dot kernel shape: {rows} row values for {out} outputs of dimension {dim}"
+    );
+}
+
 /// `out[i] = dot(q, rows[i*dim..])` for f16 rows stored as raw bits.
-pub fn dots_f16(q: &[f32], rows: &[u16], out: &mut [f32]) {
+///
+/// # Panics
+/// If `rows.len() != out.len() * q.len()` or `q` is empty.
+pub(crate) fn dots_f16(q: &[f32], rows: &[u16], out: &mut [f32]) {
     let dim = q.len();
-    debug_assert_eq!(rows.len(), out.len() * dim);
+    check_shape(dim, rows.len(), out.len());
     #[cfg(target_arch = "x86_64")]
     if dim.is_multiple_of(8)
         && std::is_x86_feature_detected!("avx2")
         && std::is_x86_feature_detected!("fma")
         && std::is_x86_feature_detected!("f16c")
     {
-        // SAFETY: the features were just detected; lengths are checked by the chunking below.
+        // SAFETY: AVX2/FMA/F16C were just detected; check_shape proved rows.len() == out.len() * dim
+        // and dim is a multiple of 8, which is the kernel's whole contract.
         unsafe { x86::dots_f16(q, rows, out) };
         return;
     }
@@ -25,12 +38,15 @@ pub fn dots_f16(q: &[f32], rows: &[u16], out: &mut [f32]) {
 }
 
 /// `out[i] = dot(q, rows[i*dim..])` for f32 rows.
-pub fn dots_f32(q: &[f32], rows: &[f32], out: &mut [f32]) {
+///
+/// # Panics
+/// If `rows.len() != out.len() * q.len()` or `q` is empty.
+pub(crate) fn dots_f32(q: &[f32], rows: &[f32], out: &mut [f32]) {
     let dim = q.len();
-    debug_assert_eq!(rows.len(), out.len() * dim);
+    check_shape(dim, rows.len(), out.len());
     #[cfg(target_arch = "x86_64")]
     if dim.is_multiple_of(8) && std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-        // SAFETY: as above.
+        // SAFETY: AVX2/FMA were just detected; check_shape proved the lengths, dim is a multiple of 8.
         unsafe { x86::dots_f32(q, rows, out) };
         return;
     }
@@ -39,32 +55,47 @@ pub fn dots_f32(q: &[f32], rows: &[f32], out: &mut [f32]) {
     }
 }
 
+/// The shape the batch kernels rely on: whole rows and queries of `dim` values, one output each pair.
+fn check_many_shape(dim: usize, queries: usize, rows: usize, out: usize) {
+    let ok = dim > 0
+        && queries.is_multiple_of(dim)
+        && rows.is_multiple_of(dim)
+        && (queries / dim).checked_mul(rows / dim) == Some(out);
+    assert!(ok, "batch dot kernel shape: {queries} query values, {rows} row values, {out} outputs, dimension {dim}");
+}
+
 /// `out[r * nq + q] = dot(rows[r], queries[q])`: a block of stored rows against `nq` queries
 /// (both row-major, `dim` wide). Register-blocked so each loaded row value serves four queries:
 /// with tens of queries this is compute-bound, not memory-bound.
-pub fn dots_many_f16(queries: &[f32], rows: &[u16], dim: usize, out: &mut [f32]) {
+///
+/// # Panics
+/// If the lengths are not whole rows/queries of `dim` values with one output per pair.
+pub(crate) fn dots_many_f16(queries: &[f32], rows: &[u16], dim: usize, out: &mut [f32]) {
+    check_many_shape(dim, queries.len(), rows.len(), out.len());
     #[cfg(target_arch = "x86_64")]
     if dim.is_multiple_of(8)
         && std::is_x86_feature_detected!("avx2")
         && std::is_x86_feature_detected!("fma")
         && std::is_x86_feature_detected!("f16c")
     {
-        // SAFETY: features detected; shapes are checked inside before any pointer arithmetic.
+        // SAFETY: AVX2/FMA/F16C detected; check_many_shape proved whole rows/queries and the
+        // output length, dim is a multiple of 8 (the kernel asserts the same again).
         unsafe { x86::dots_many(queries, rows, dim, out) };
         return;
     }
-    dots_many_fallback(queries, rows.len() / dim.max(1), dim, out, |q, tmp| dots_f16(q, rows, tmp));
+    dots_many_fallback(queries, rows.len() / dim, dim, out, |q, tmp| dots_f16(q, rows, tmp));
 }
 
 /// As [`dots_many_f16`] for f32 rows.
-pub fn dots_many_f32(queries: &[f32], rows: &[f32], dim: usize, out: &mut [f32]) {
+pub(crate) fn dots_many_f32(queries: &[f32], rows: &[f32], dim: usize, out: &mut [f32]) {
+    check_many_shape(dim, queries.len(), rows.len(), out.len());
     #[cfg(target_arch = "x86_64")]
     if dim.is_multiple_of(8) && std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-        // SAFETY: as above.
+        // SAFETY: AVX2/FMA detected; shapes proved by check_many_shape, dim a multiple of 8.
         unsafe { x86::dots_many(queries, rows, dim, out) };
         return;
     }
-    dots_many_fallback(queries, rows.len() / dim.max(1), dim, out, |q, tmp| dots_f32(q, rows, tmp));
+    dots_many_fallback(queries, rows.len() / dim, dim, out, |q, tmp| dots_f32(q, rows, tmp));
 }
 
 /// One query at a time, scattered into the rows x queries layout.
@@ -95,8 +126,12 @@ mod x86 {
     }
 
     /// Two rows at a time share each query load; four accumulators per row hide FMA latency.
+    ///
+    /// # Safety
+    /// The CPU has AVX2, FMA and F16C; `q.len()` is a non-zero multiple of 8 and
+    /// `rows.len() == out.len() * q.len()` (rows are read through raw pointers).
     #[target_feature(enable = "avx2,fma,f16c")]
-    pub unsafe fn dots_f16(q: &[f32], rows: &[u16], out: &mut [f32]) {
+    pub(super) unsafe fn dots_f16(q: &[f32], rows: &[u16], out: &mut [f32]) {
         let dim = q.len();
         let qp = q.as_ptr();
         let n = out.len();
@@ -163,8 +198,10 @@ mod x86 {
     /// Query values per K-slice: four queries' slices (16 KB) stay in L1 while rows stream from L2.
     const KC: usize = 1024;
 
+    /// # Safety
+    /// The CPU has AVX2, FMA and F16C (shapes are asserted here before any pointer arithmetic).
     #[target_feature(enable = "avx2,fma,f16c")]
-    pub unsafe fn dots_many<T: Lanes>(queries: &[f32], rows: &[T], dim: usize, out: &mut [f32]) {
+    pub(super) unsafe fn dots_many<T: Lanes>(queries: &[f32], rows: &[T], dim: usize, out: &mut [f32]) {
         let (nq, nr) = (queries.len() / dim, rows.len() / dim);
         assert!(dim.is_multiple_of(8) && queries.len() == nq * dim && rows.len() == nr * dim);
         assert_eq!(out.len(), nr * nq, "output is rows x queries");
@@ -210,6 +247,10 @@ mod x86 {
         go!(1 1, 1 2, 1 3, 1 4, 2 1, 2 2, 2 3, 2 4, 3 1, 3 2, 3 3, 3 4)
     }
 
+    /// # Safety
+    /// `rows + r*dim + j` and `q + qi*dim + j` are readable for j < len (len a multiple of 8),
+    /// r < R, qi < Q, and `out + r*nq + qi` is writable: `dots_many`'s loops guarantee it.
+    ///
     /// R rows x Q queries over `len` values: R*Q accumulators (12 of the 16 ymm registers at 3x4),
     /// each row value widened once and each query value loaded once per step.
     #[inline(always)]
@@ -252,8 +293,11 @@ mod x86 {
         }
     }
 
+    /// # Safety
+    /// The CPU has AVX2 and FMA; `q.len()` is a non-zero multiple of 8 and
+    /// `rows.len() == out.len() * q.len()` (rows are read through raw pointers).
     #[target_feature(enable = "avx2,fma")]
-    pub unsafe fn dots_f32(q: &[f32], rows: &[f32], out: &mut [f32]) {
+    pub(super) unsafe fn dots_f32(q: &[f32], rows: &[f32], out: &mut [f32]) {
         let dim = q.len();
         let qp = q.as_ptr();
         for (i, o) in out.iter_mut().enumerate() {
@@ -277,6 +321,24 @@ mod x86 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Mismatched shapes stop before any read, in release builds as well.
+    #[test]
+    fn wrong_shapes_are_refused_not_read() {
+        let q = vec![0.5f32; 16];
+        let short16 = vec![0u16; 16 * 3 - 8];
+        let short32 = vec![0f32; 16 * 3 - 8];
+        let caught = |f: &(dyn Fn() + std::panic::RefUnwindSafe)| std::panic::catch_unwind(f).is_err();
+        assert!(caught(&|| dots_f16(&q, &short16, &mut [0f32; 3])));
+        assert!(caught(&|| dots_f32(&q, &short32, &mut [0f32; 3])));
+        assert!(caught(&|| dots_f32(&[], &[], &mut [0f32; 3])));
+        assert!(caught(&|| dots_many_f16(&q, &short16, 16, &mut [0f32; 3])));
+        assert!(caught(&|| dots_many_f32(&q[..8], &short32, 16, &mut [0f32; 3])));
+        // The right shapes still work.
+        let mut out = [0f32; 3];
+        dots_f32(&q, &[1f32; 48], &mut out);
+        assert_eq!(out, [8.0; 3]);
+    }
 
     #[test]
     fn simd_matches_scalar() {

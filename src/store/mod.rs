@@ -7,15 +7,18 @@ pub mod query;
 pub mod record;
 
 use durability::GroupCommit;
-use index::{SessionIndex, Storage};
+use index::SessionIndex;
+use parking_lot::{Mutex, RwLock};
 use query::{LoopQuery, Match, Pose};
+pub use record::Storage;
 use record::{decode_frame, encode_frame, frame_key, key_frame, FrameHeader, SessionMeta};
 use serde::Serialize;
 use std::collections::HashMap;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::Arc;
 use std::time::Instant;
+use tokio::sync::Semaphore;
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum StoreError {
@@ -31,6 +34,8 @@ pub enum StoreError {
     InvalidArgument(String),
     #[error("storage failure: {0}")]
     Storage(String),
+    #[error("search pool stopped")]
+    Stopped,
 }
 
 impl From<sled::Error> for StoreError {
@@ -38,6 +43,10 @@ impl From<sled::Error> for StoreError {
         StoreError::Storage(e.to_string())
     }
 }
+
+/// Largest frame id a client may choose: server-assigned ids count up from the highest stored id
+/// and must never wrap around.
+pub const MAX_CLIENT_FRAME_ID: u64 = (1 << 63) - 1;
 
 /// A frame to add. `frame_id` None: the session assigns the next free id.
 #[derive(Clone, Debug)]
@@ -77,6 +86,8 @@ pub struct Store {
     admin: Mutex<()>,
     commit: GroupCommit,
     search_threads: usize,
+    /// Searches running at once on blocking threads (never on the async executor).
+    search_slots: Arc<Semaphore>,
     search: SearchConfig,
 }
 
@@ -84,8 +95,12 @@ fn session_tree_name(id: &str) -> String {
     format!("session/{id}")
 }
 
+/// Letters, digits, '-', '_' and '.', with at least one letter or digit ("." and ".." are path
+/// names, not ids).
 fn valid_session_id(id: &str) -> bool {
-    (1..=64).contains(&id.len()) && id.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+    (1..=64).contains(&id.len())
+        && id.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+        && id.chars().any(|c| c.is_ascii_alphanumeric())
 }
 
 /// Unit length, finite values: cosine similarity is then a dot product.
@@ -103,13 +118,25 @@ pub fn normalize(descriptor: &mut [f32]) -> Result<(), StoreError> {
 }
 
 /// Where loop searches run.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug)]
 pub struct SearchConfig {
     /// A libtorch device (the model's GPU) holding a copy of every session's rows; None: the
     /// host SIMD kernels.
     pub device: Option<tch::Device>,
     /// Sessions smaller than this search on the host even with a device (round-trip cost).
     pub device_min_rows: usize,
+    /// Searches running at once (each on a blocking thread); more wait their turn.
+    pub max_concurrent: usize,
+}
+
+impl Default for SearchConfig {
+    fn default() -> Self {
+        Self { device: None, device_min_rows: 4096, max_concurrent: cores() }
+    }
+}
+
+fn cores() -> usize {
+    std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
 }
 
 impl Store {
@@ -131,7 +158,7 @@ impl Store {
             let (_, v) = entry?;
             let meta: SessionMeta = serde_json::from_slice(&v).map_err(|e| StoreError::Storage(e.to_string()))?;
             let session = Session::load(&db, meta, search)?;
-            let index = session.index.read().expect("index lock");
+            let index = session.index.read();
             index.upload();
             frames += index.len();
             drop(index);
@@ -145,20 +172,16 @@ impl Store {
             "indexes rebuilt from sled"
         );
         let commit = GroupCommit::start(db.clone());
-        let search_threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
         Ok(Self {
             db,
             sessions_tree,
             sessions: RwLock::new(sessions),
             admin: Mutex::new(()),
             commit,
-            search_threads,
+            search_threads: cores(),
+            search_slots: Arc::new(Semaphore::new(search.max_concurrent.max(1))),
             search,
         })
-    }
-
-    pub fn set_search_threads(&mut self, n: usize) {
-        self.search_threads = n.max(1);
     }
 
     pub async fn create_session(
@@ -174,7 +197,7 @@ impl Store {
             return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
         }
         let meta = {
-            let _admin = self.admin.lock().expect("admin lock");
+            let _admin = self.admin.lock();
             let id = id.unwrap_or_else(|| {
                 let nanos =
                     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos();
@@ -182,10 +205,10 @@ impl Store {
             });
             if !valid_session_id(&id) {
                 return Err(StoreError::InvalidArgument(format!(
-                    "session id '{id}' must be 1-64 characters of letters, digits, '-', '_' or '.'"
+                    "session id '{id}' must be 1-64 characters of letters, digits, '-', '_' or '.', with a letter or digit"
                 )));
             }
-            if self.sessions.read().expect("sessions lock").contains_key(&id) {
+            if self.sessions.read().contains_key(&id) {
                 return Err(StoreError::SessionExists(id));
             }
             let created =
@@ -193,7 +216,7 @@ impl Store {
             let meta = SessionMeta { id: id.clone(), name, created, dim, descriptor_id, storage, default_query };
             let session = Session::load(&self.db, meta.clone(), self.search)?;
             self.sessions_tree.insert(id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises"))?;
-            self.sessions.write().expect("sessions lock").insert(id, Arc::new(session));
+            self.sessions.write().insert(id, Arc::new(session));
             meta
         };
         self.durable().await?;
@@ -201,16 +224,11 @@ impl Store {
     }
 
     pub fn session(&self, id: &str) -> Result<Arc<Session>, StoreError> {
-        self.sessions
-            .read()
-            .expect("sessions lock")
-            .get(id)
-            .cloned()
-            .ok_or_else(|| StoreError::SessionNotFound(id.into()))
+        self.sessions.read().get(id).cloned().ok_or_else(|| StoreError::SessionNotFound(id.into()))
     }
 
     pub fn list(&self) -> Vec<SessionInfo> {
-        let mut v: Vec<SessionInfo> = self.sessions.read().expect("sessions lock").values().map(|s| s.info()).collect();
+        let mut v: Vec<SessionInfo> = self.sessions.read().values().map(|s| s.info()).collect();
         v.sort_by(|a, b| a.meta.created.total_cmp(&b.meta.created).then(a.meta.id.cmp(&b.meta.id)));
         v
     }
@@ -218,8 +236,8 @@ impl Store {
     /// Deletes the session and its frames from disk and memory.
     pub async fn delete_session(&self, id: &str) -> Result<(), StoreError> {
         {
-            let _admin = self.admin.lock().expect("admin lock");
-            let removed = self.sessions.write().expect("sessions lock").remove(id);
+            let _admin = self.admin.lock();
+            let removed = self.sessions.write().remove(id);
             if removed.is_none() {
                 return Err(StoreError::SessionNotFound(id.into()));
             }
@@ -229,25 +247,13 @@ impl Store {
         self.durable().await
     }
 
-    /// Adds frames; acknowledged (returns their ids) once they are on disk.
-    pub async fn add_frames(&self, session: &str, frames: Vec<NewFrame>) -> Result<Vec<u64>, StoreError> {
-        let s = self.session(session)?;
+    /// Adds frames; acknowledged (returns their ids) once they are on disk. A frame becomes
+    /// searchable right after its flush, on the flusher, whether or not the caller still waits:
+    /// a dropped request cannot leave a frame on disk that the index does not know.
+    pub async fn add_frames(&self, s: &Arc<Session>, frames: Vec<NewFrame>) -> Result<Vec<u64>, StoreError> {
         let mut prepared = Vec::with_capacity(frames.len());
         for mut f in frames {
-            if f.descriptor.len() != s.meta.dim {
-                return Err(StoreError::InvalidArgument(format!(
-                    "descriptor has {} values; session '{}' holds {}-d descriptors",
-                    f.descriptor.len(),
-                    s.meta.id,
-                    s.meta.dim
-                )));
-            }
-            if f.robot_id.is_empty() || f.robot_id.len() > 128 {
-                return Err(StoreError::InvalidArgument("robot_id must be 1-128 characters".into()));
-            }
-            if !f.timestamp.is_finite() {
-                return Err(StoreError::InvalidArgument("timestamp must be a finite number".into()));
-            }
+            check_new_frame(s, &f)?;
             normalize(&mut f.descriptor)?;
             prepared.push(f);
         }
@@ -270,7 +276,7 @@ impl Store {
                         }
                         return Err(StoreError::FrameExists(s.meta.id.clone(), id));
                     }
-                    s.next_id.fetch_max(id.saturating_add(1), Relaxed);
+                    s.next_id.fetch_max(id + 1, Relaxed);
                     id
                 }
                 None => loop {
@@ -283,53 +289,47 @@ impl Store {
             added_bytes += (8 + value.len()) as u64;
             written.push(id);
         }
-        s.bytes.fetch_add(added_bytes, Relaxed);
-        self.durable().await?;
-        // Searchable once durable: a match never points at a frame that could still vanish.
-        let mut index = s.index.write().expect("index lock");
-        for (f, &id) in prepared.iter().zip(&written) {
-            index.push(id, &f.robot_id, f.timestamp, f.pose, &f.descriptor);
-        }
+        // No await between the inserts above and this: the publish is queued with them.
+        let (session, ids) = (s.clone(), written.clone());
+        let publish: durability::AfterFlush = Box::new(move |flushed| match flushed {
+            Ok(()) => {
+                // Searchable once durable: a match never points at a frame that could still vanish.
+                let mut index = session.index.write();
+                for (f, &id) in prepared.iter().zip(&ids) {
+                    index.push(id, &f.robot_id, f.timestamp, f.pose, &f.descriptor);
+                }
+                session.bytes.fetch_add(added_bytes, Relaxed);
+            }
+            Err(_) => {
+                // Not acknowledged: take the frames back so they do not reappear after a restart.
+                for &id in &ids {
+                    let _ = session.tree.remove(frame_key(id));
+                }
+            }
+        });
+        self.commit.durable_then(Some(publish)).await.map_err(StoreError::Storage)?;
         Ok(written)
     }
 
-    /// Ranked matches for a descriptor (normalised here).
-    pub fn query(&self, session: &str, mut descriptor: Vec<f32>, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
-        let s = self.session(session)?;
-        if descriptor.len() != s.meta.dim {
-            return Err(StoreError::InvalidArgument(format!(
-                "query descriptor has {} values; session '{}' holds {}-d descriptors",
-                descriptor.len(),
-                s.meta.id,
-                s.meta.dim
-            )));
-        }
-        if q.k > query::MAX_K {
-            return Err(StoreError::InvalidArgument(format!("k = {} exceeds the limit of {}", q.k, query::MAX_K)));
-        }
-        normalize(&mut descriptor)?;
-        let matches = s.index.read().expect("index lock").search(&descriptor, q, self.search_threads);
-        Ok(matches)
+    /// Ranked matches for a descriptor (normalised here), searched on a blocking thread of the
+    /// bounded search pool so a large scan never stalls the async executor.
+    pub async fn query(&self, s: &Arc<Session>, descriptor: Vec<f32>, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
+        let permit = self.search_slots.clone().acquire_owned().await.map_err(|_| StoreError::Stopped)?;
+        let (s, q, threads) = (s.clone(), q.clone(), self.search_threads);
+        tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            s.search(descriptor, &q, threads)
+        })
+        .await
+        .map_err(|e| StoreError::Storage(format!("search worker failed: {e}")))?
     }
 
-    /// Ranked matches for a stored frame (itself excluded).
-    pub fn query_frame(&self, session: &str, frame_id: u64, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
-        let s = self.session(session)?;
-        let d = s.index.read().expect("index lock").descriptor(frame_id);
-        let d = d.ok_or_else(|| StoreError::FrameNotFound(session.into(), frame_id))?;
-        let mut q = q.clone();
-        q.k += 1;
-        let mut matches = self.query(session, d, &q)?;
-        matches.retain(|m| m.frame_id != frame_id);
-        matches.truncate(q.k - 1);
-        Ok(matches)
-    }
-
-    /// A stored frame: header and descriptor as stored (f16 sessions give f16-rounded values).
-    pub fn frame(&self, session: &str, frame_id: u64) -> Result<(FrameHeader, Vec<f32>), StoreError> {
-        let s = self.session(session)?;
-        let v = s.tree.get(frame_key(frame_id))?.ok_or_else(|| StoreError::FrameNotFound(session.into(), frame_id))?;
-        decode_frame(&v).map_err(StoreError::Storage)
+    /// Ranked matches for a stored frame, which is itself never among them.
+    pub async fn query_frame(&self, s: &Arc<Session>, frame_id: u64, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
+        let d = s.index.read().descriptor(frame_id);
+        let d = d.ok_or_else(|| StoreError::FrameNotFound(s.meta.id.clone(), frame_id))?;
+        let q = LoopQuery { exclude_frame: Some(frame_id), ..q.clone() };
+        self.query(s, d, &q).await
     }
 
     async fn durable(&self) -> Result<(), StoreError> {
@@ -352,7 +352,56 @@ impl Store {
     }
 }
 
+/// What a frame must be before anything is written (the dimension, ids and fields).
+fn check_new_frame(s: &Session, f: &NewFrame) -> Result<(), StoreError> {
+    if f.descriptor.len() != s.meta.dim {
+        return Err(StoreError::InvalidArgument(format!(
+            "descriptor has {} values; session '{}' holds {}-d descriptors",
+            f.descriptor.len(),
+            s.meta.id,
+            s.meta.dim
+        )));
+    }
+    if f.robot_id.is_empty() || f.robot_id.len() > 128 {
+        return Err(StoreError::InvalidArgument("robot_id must be 1-128 characters".into()));
+    }
+    if !f.timestamp.is_finite() {
+        return Err(StoreError::InvalidArgument("timestamp must be a finite number".into()));
+    }
+    if f.frame_id.is_some_and(|id| id > MAX_CLIENT_FRAME_ID) {
+        return Err(StoreError::InvalidArgument(format!("frame_id must be at most {MAX_CLIENT_FRAME_ID}")));
+    }
+    Ok(())
+}
+
 impl Session {
+    /// Ranked matches for a descriptor (normalised here); blocking: the store runs it on its
+    /// search pool.
+    pub fn search(&self, mut descriptor: Vec<f32>, q: &LoopQuery, threads: usize) -> Result<Vec<Match>, StoreError> {
+        if descriptor.len() != self.meta.dim {
+            return Err(StoreError::InvalidArgument(format!(
+                "query descriptor has {} values; session '{}' holds {}-d descriptors",
+                descriptor.len(),
+                self.meta.id,
+                self.meta.dim
+            )));
+        }
+        q.validate().map_err(StoreError::InvalidArgument)?;
+        normalize(&mut descriptor)?;
+        Ok(self.index.read().search(&descriptor, q, threads))
+    }
+
+    /// A stored frame: header and descriptor as stored (f16 sessions give f16-rounded values).
+    /// Read from the index's view, so a frame is visible here exactly when it is searchable.
+    pub fn frame(&self, frame_id: u64) -> Result<(FrameHeader, Vec<f32>), StoreError> {
+        let not_found = || StoreError::FrameNotFound(self.meta.id.clone(), frame_id);
+        if !self.index.read().contains(frame_id) {
+            return Err(not_found());
+        }
+        let v = self.tree.get(frame_key(frame_id))?.ok_or_else(not_found)?;
+        decode_frame(&v).map_err(StoreError::Storage)
+    }
+
     fn load(db: &sled::Db, meta: SessionMeta, search: SearchConfig) -> Result<Self, StoreError> {
         let tree = db.open_tree(session_tree_name(&meta.id))?;
         let mut index = SessionIndex::new(meta.dim, meta.storage);
@@ -378,11 +427,11 @@ impl Session {
 
     /// Searches of this session answered on the search device (0 when searching on the host).
     pub fn device_searches(&self) -> u64 {
-        self.index.read().expect("index lock").device_searches()
+        self.index.read().device_searches()
     }
 
     pub fn info(&self) -> SessionInfo {
-        let index = self.index.read().expect("index lock");
+        let index = self.index.read();
         SessionInfo {
             meta: self.meta.clone(),
             frames: index.len(),

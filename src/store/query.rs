@@ -34,6 +34,9 @@ pub struct LoopQuery {
     /// Optional inclusive ranges.
     pub time_range: Option<(f64, f64)>,
     pub frame_id_range: Option<(u64, u64)>,
+    /// A frame never returned (the stored frame a query is made from); not a client option.
+    #[serde(skip)]
+    pub exclude_frame: Option<u64>,
 }
 
 impl Default for LoopQuery {
@@ -48,7 +51,37 @@ impl Default for LoopQuery {
             scope: Scope::All,
             time_range: None,
             frame_id_range: None,
+            exclude_frame: None,
         }
+    }
+}
+
+impl LoopQuery {
+    /// The one place a query's options are checked; every search path calls it.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(1..=MAX_K).contains(&self.k) {
+            return Err(format!("k = {} is out of range 1..={MAX_K}", self.k));
+        }
+        if !self.min_score.is_finite() {
+            return Err("min_score must be a finite number".into());
+        }
+        if !self.exclude_last_seconds.is_finite() || self.exclude_last_seconds < 0.0 {
+            return Err("exclude_last_seconds must be a finite number >= 0".into());
+        }
+        if self.at_time.is_some_and(|t| !t.is_finite()) {
+            return Err("the query time must be a finite number".into());
+        }
+        if let Some((a, b)) = self.time_range {
+            if a.is_nan() || b.is_nan() || a > b {
+                return Err(format!("time range {a}..{b} is not an ordered pair of numbers"));
+            }
+        }
+        if let Some((a, b)) = self.frame_id_range {
+            if a > b {
+                return Err(format!("frame id range {a}..{b} is empty (from > to)"));
+            }
+        }
+        Ok(())
     }
 }
 

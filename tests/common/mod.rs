@@ -56,3 +56,11 @@ pub fn loopd_bin() -> std::process::Command {
     c.current_dir(root()).env("LOOPD_DEVICE", "cpu");
     c
 }
+
+/// The ImageNet model at another input size (another descriptor space).
+pub fn imagenet_model_at(width: u32, height: u32) -> Model {
+    let mut cfg = ModelConfig::default();
+    cfg.preprocess.width = width;
+    cfg.preprocess.height = height;
+    Model::load(&weights(), cfg, tch::Device::Cpu, DType::F32).expect("loading weights").0
+}
