@@ -200,6 +200,7 @@ fn store_bench() -> anyhow::Result<()> {
                 "bench".into(),
                 Storage::F16,
                 LoopQuery::default(),
+                None,
             )
             .await?;
         let bar = ProgressBar::new(n as u64).with_style(
@@ -220,6 +221,7 @@ fn store_bench() -> anyhow::Result<()> {
                             pose: None,
                             metadata: None,
                             descriptor: row.clone(),
+                            features: None,
                         };
                         store.add_frames(&session, vec![f]).await?;
                         bar.inc(1);

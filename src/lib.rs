@@ -1,6 +1,7 @@
 //! loopd: loop-closure detection as a service.
 //!
-//! Layers, dependencies pointing one way: `api` -> `engine` -> `model`, `store`.
+//! Layers, dependencies pointing one way: `api` -> `engine` -> `model`, `store`; `verify` (local
+//! features and geometry) is used by `api` and `eval`.
 pub mod api;
 pub mod cli;
 pub mod engine;
@@ -9,3 +10,4 @@ pub mod files;
 pub mod model;
 pub mod pb;
 pub mod store;
+pub mod verify;

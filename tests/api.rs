@@ -33,6 +33,7 @@ async fn server() -> &'static Server {
                     max_body_bytes: 8 << 20,
                     max_jobs: 2,
                     search: Default::default(),
+                    verify: Default::default(),
                 };
                 let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
                 tx.send(Server {
@@ -399,6 +400,7 @@ async fn server_at(dir: &std::path::Path, size: u32) -> RunningServer {
         max_body_bytes: 8 << 20,
         max_jobs: 1,
         search: Default::default(),
+        verify: Default::default(),
     };
     RunningServer::start(cfg, imagenet_model_at(size, size)).await.unwrap()
 }

@@ -30,6 +30,7 @@ fn health_checks_answer_while_large_searches_run() {
             max_body_bytes: 8 << 20,
             max_jobs: 1,
             search: Default::default(),
+            verify: Default::default(),
         };
         let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
         let svc = &server.service;
@@ -52,6 +53,7 @@ fn health_checks_answer_while_large_searches_run() {
                     pose: None,
                     metadata: None,
                     descriptor: descriptors[i % descriptors.len()].clone(),
+                    features: None,
                 })
                 .collect();
             svc.store.add_frames(&s, frames).await.unwrap();

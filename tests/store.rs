@@ -42,8 +42,11 @@ async fn search(store: &Store, session: &str, d: Vec<f32>, q: &LoopQuery) -> Res
     store.query(&store.session(session)?, d, q).await
 }
 
+/// A query by a stored frame, as the service makes it: its descriptor, itself excluded.
 async fn query_frame(store: &Store, session: &str, id: u64, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
-    store.query_frame(&store.session(session)?, id, q).await
+    let s = store.session(session)?;
+    let d = s.descriptor(id)?;
+    store.query(&s, d, &LoopQuery { exclude_frame: Some(id), ..q.clone() }).await
 }
 
 fn stored_frame(store: &Store, session: &str, id: u64) -> Result<(FrameHeader, Vec<f32>), StoreError> {
@@ -58,13 +61,14 @@ fn frame(id: Option<u64>, robot: &str, t: f64, d: &[f32]) -> NewFrame {
         pose: Some(Pose { x: t, y: 0.0, z: 0.0, qx: 0.0, qy: 0.0, qz: 0.0, qw: 1.0 }),
         metadata: Some(serde_json::json!({ "camera": "fisheye" })),
         descriptor: d.to_vec(),
+        features: None,
     }
 }
 
 async fn two_robot_session(store: &Store, id: &str, storage: Storage) {
     let (query, reference) = corridor();
     store
-        .create_session(Some(id.into()), "corridor".into(), 2048, "test".into(), storage, LoopQuery::default())
+        .create_session(Some(id.into()), "corridor".into(), 2048, "test".into(), storage, LoopQuery::default(), None)
         .await
         .unwrap();
     let refs: Vec<NewFrame> =
@@ -168,7 +172,7 @@ async fn exclusion_window_skips_the_robots_own_recent_frames() {
     let store = Store::open(dir.path()).unwrap();
     let (query, _) = corridor();
     store
-        .create_session(Some("w".into()), "w".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+        .create_session(Some("w".into()), "w".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
         .await
         .unwrap();
     // One robot driving the corridor: frame i at time 0.5 * i.
@@ -237,7 +241,7 @@ async fn concurrent_writers_lose_nothing() {
     {
         let store = std::sync::Arc::new(Store::open(dir.path()).unwrap());
         store
-            .create_session(Some("c".into()), "c".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+            .create_session(Some("c".into()), "c".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
             .await
             .unwrap();
         let (query, reference) = corridor();
@@ -277,14 +281,23 @@ async fn bad_writes_get_clear_errors_and_change_nothing() {
     let store = Store::open(dir.path()).unwrap();
     let (query, _) = corridor();
     store
-        .create_session(Some("b".into()), "b".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+        .create_session(Some("b".into()), "b".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
         .await
         .unwrap();
-    let again =
-        store.create_session(Some("b".into()), "b".into(), 2048, "t".into(), Storage::F16, LoopQuery::default()).await;
+    let again = store
+        .create_session(Some("b".into()), "b".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
+        .await;
     assert_eq!(again, Err(StoreError::SessionExists("b".into())));
     let bad_id = store
-        .create_session(Some("no spaces/".into()), "x".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+        .create_session(
+            Some("no spaces/".into()),
+            "x".into(),
+            2048,
+            "t".into(),
+            Storage::F16,
+            LoopQuery::default(),
+            None,
+        )
         .await;
     assert!(matches!(bad_id, Err(StoreError::InvalidArgument(_))));
     add(&store, "b", vec![frame(Some(7), "r", 0.0, &query[0])]).await.unwrap();
@@ -439,7 +452,7 @@ async fn a_dropped_write_is_never_a_ghost() {
     {
         let store = Store::open(dir.path()).unwrap();
         store
-            .create_session(Some("g".into()), "g".into(), 2048, "t".into(), Storage::F16, LoopQuery::default())
+            .create_session(Some("g".into()), "g".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
             .await
             .unwrap();
         let s = store.session("g").unwrap();

@@ -1,9 +1,11 @@
 //! gRPC (tonic): `proto/loopd/v1/loopd.proto` translated onto `LoopService`.
 use super::error::ApiError;
-use super::service::{Content, CreateSession, FrameInput, LoopService, QueryOverrides, QueryTarget};
+use super::service::{Content, CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
 use crate::pb;
-use crate::store::query::{Match, Pose, Scope};
+use crate::store::query::{Pose, Scope};
+use crate::store::record::Camera;
 use crate::store::{SessionInfo, Storage};
+use crate::verify::geometric::Verification;
 use std::pin::Pin;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
@@ -44,7 +46,39 @@ fn overrides(o: Option<pb::QueryOptions>) -> Result<QueryOverrides, ApiError> {
         scope,
         time_range: pair(o.time_from, o.time_to),
         frame_id_range: ids,
+        verify: o.verify,
+        verify_candidates: o.verify_candidates.map(|k| k as usize),
+        min_inliers: o.min_inliers.map(|n| n as usize),
     })
+}
+
+fn camera(c: Option<pb::Camera>) -> Result<Option<Camera>, ApiError> {
+    let Some(c) = c else { return Ok(None) };
+    let distortion = match c.distortion.as_slice() {
+        [] => None,
+        &[k1, k2, p1, p2, k3] => Some([k1, k2, p1, p2, k3]),
+        d => return Err(ApiError::InvalidArgument(format!("camera distortion has {} values; 0 or 5", d.len()))),
+    };
+    Ok(Some(Camera { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, distortion }))
+}
+
+fn verification_to_pb(v: Verification) -> pb::Verification {
+    pb::Verification {
+        matches: v.matches as u32,
+        inliers: v.inliers as u32,
+        inlier_ratio: v.inlier_ratio,
+        verified: v.verified,
+        reason: v.reason.unwrap_or_default(),
+        relative_pose: v.relative_pose.map(|p| pb::RelativePose {
+            qx: p.qx,
+            qy: p.qy,
+            qz: p.qz,
+            qw: p.qw,
+            tx: p.tx,
+            ty: p.ty,
+            tz: p.tz,
+        }),
+    }
 }
 
 fn storage_to_pb(s: Storage) -> i32 {
@@ -68,14 +102,15 @@ fn session_to_pb(i: SessionInfo) -> pb::Session {
     }
 }
 
-fn matches_to_pb(m: Vec<Match>) -> Vec<pb::Match> {
+fn matches_to_pb(m: Vec<LoopMatch>) -> Vec<pb::Match> {
     m.into_iter()
-        .map(|m| pb::Match {
+        .map(|LoopMatch { m, verification }| pb::Match {
             frame_id: m.frame_id,
             score: m.score,
             robot_id: m.robot_id,
             timestamp: m.timestamp,
             pose: from_pose(m.pose),
+            verification: verification.map(verification_to_pb),
         })
         .collect()
 }
@@ -120,8 +155,13 @@ impl pb::loopd_server::Loopd for GrpcApi {
             Ok(_) => Storage::F16,
             Err(_) => return Err(Status::invalid_argument(format!("unknown storage {}", r.storage))),
         };
-        let create =
-            CreateSession { id: Some(r.id), name: r.name, storage, default_query: overrides(r.default_query)? };
+        let create = CreateSession {
+            id: Some(r.id),
+            name: r.name,
+            storage,
+            default_query: overrides(r.default_query)?,
+            camera: camera(r.camera)?,
+        };
         Ok(Response::new(session_to_pb(self.service.create_session(create).await?)))
     }
 

@@ -2,9 +2,9 @@
 //! frame reads and offline sequence jobs; `openapi.yaml` describes each route.
 use super::error::ApiError;
 use super::jobs::{JobStatus, SequenceRequest};
-use super::service::{Content, CreateSession, FrameInput, LoopService, QueryOverrides, QueryTarget};
+use super::service::{Content, CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
 use crate::model::network::{Variant, DESCRIPTOR_DIM};
-use crate::store::query::{Match, Pose};
+use crate::store::query::Pose;
 use crate::store::SessionInfo;
 use axum::body::Bytes;
 use axum::extract::{DefaultBodyLimit, FromRequest, Multipart, Path, Query, Request, State};
@@ -299,7 +299,7 @@ async fn add_frame(
 
 #[derive(Serialize)]
 struct QueryResponse {
-    matches: Vec<Match>,
+    matches: Vec<LoopMatch>,
 }
 
 async fn query(
@@ -319,7 +319,7 @@ async fn query(
 #[derive(Serialize)]
 struct AddAndQueryResponse {
     frame_id: u64,
-    matches: Vec<Match>,
+    matches: Vec<LoopMatch>,
 }
 
 async fn add_and_query(

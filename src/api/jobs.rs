@@ -192,6 +192,8 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
         min_score: Some(seq.min_score),
         exclude_last_frames: Some(seq.exclude_last_frames),
         scope: Some(Scope::SameRobot),
+        // Frames reach the job as descriptors (embedded ahead in batches): nothing to check with.
+        verify: Some(false),
         ..Default::default()
     };
     let mut names: HashMap<u64, (usize, String)> = HashMap::new();
@@ -217,7 +219,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
         match service.add_and_query(&session, frame, &opts).await {
             Ok((frame_id, matches)) => {
                 let mut s = status.lock();
-                if let Some(m) = matches.first() {
+                if let Some(m) = matches.first().map(|c| &c.m) {
                     if let Some((mi, mname)) = names.get(&m.frame_id) {
                         s.loops.push(LoopClosure {
                             query_index: i,

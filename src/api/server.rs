@@ -7,6 +7,7 @@ use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
 use crate::pb;
 use crate::store::{SearchConfig, Store};
+use crate::verify::pool::VerifyConfig;
 use anyhow::{Context, Result};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -24,6 +25,8 @@ pub struct ServerConfig {
     pub max_jobs: usize,
     /// Where loop searches run (host kernels or a libtorch device).
     pub search: SearchConfig,
+    /// Local features kept per frame and the workers that extract and check them.
+    pub verify: VerifyConfig,
 }
 
 pub struct RunningServer {
@@ -42,7 +45,7 @@ impl RunningServer {
                 .with_context(|| format!("opening store in {}", cfg.data_dir.display()))?,
         );
         let engine = Engine::start(model, cfg.engine.clone(), cfg.limits)?;
-        let service = LoopService::new(engine, store, cfg.max_jobs);
+        let service = LoopService::new(engine, store, cfg.max_jobs, cfg.verify.clone());
         let (shutdown, rx) = tokio::sync::watch::channel(false);
 
         let http = tokio::net::TcpListener::bind(cfg.http_addr)

@@ -4,9 +4,13 @@ use super::error::ApiError;
 use super::jobs::{JobStatus, Jobs, SequenceRequest};
 use crate::engine::Engine;
 use crate::model::network::{Variant, DESCRIPTOR_DIM};
-use crate::store::query::{LoopQuery, Match, Pose, Scope};
-use crate::store::record::FrameHeader;
+use crate::store::query::{LoopQuery, Pose, Scope, MAX_K};
+use crate::store::record::{Camera, FrameHeader};
 use crate::store::{NewFrame, Session, SessionInfo, Storage, Store, MAX_CLIENT_FRAME_ID};
+use crate::verify::features::Features;
+use crate::verify::geometric::{Intrinsics, VerifyParams};
+use crate::verify::pool::{Verifier, VerifyConfig};
+pub use crate::verify::LoopMatch;
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -16,6 +20,19 @@ pub struct LoopService {
     pub engine: Engine,
     pub store: Arc<Store>,
     pub jobs: Arc<Jobs>,
+    pub verifier: Verifier,
+}
+
+/// What a query brings to geometric verification: its features, or why it has none.
+enum QueryFeatures {
+    Some(Arc<Features>),
+    None(String),
+}
+
+/// A frame's picture made ready: its descriptor, and the local features of an image.
+struct Prepared {
+    descriptor: Vec<f32>,
+    features: QueryFeatures,
 }
 
 /// A frame's picture: image bytes to embed, or a descriptor computed elsewhere.
@@ -35,6 +52,12 @@ pub struct QueryOverrides {
     pub scope: Option<Scope>,
     pub time_range: Option<(f64, f64)>,
     pub frame_id_range: Option<(u64, u64)>,
+    /// Geometric verification of the best candidates on or off.
+    pub verify: Option<bool>,
+    /// How many candidates are checked (K).
+    pub verify_candidates: Option<usize>,
+    /// Inliers needed for a verified loop.
+    pub min_inliers: Option<usize>,
 }
 
 impl QueryOverrides {
@@ -60,6 +83,15 @@ impl QueryOverrides {
         }
         if self.frame_id_range.is_some() {
             q.frame_id_range = self.frame_id_range;
+        }
+        if let Some(v) = self.verify {
+            q.verify.geometric = v;
+        }
+        if let Some(v) = self.verify_candidates {
+            q.verify.candidates = v;
+        }
+        if let Some(v) = self.min_inliers {
+            q.verify.min_inliers = v;
         }
         q
     }
@@ -100,15 +132,19 @@ impl FrameInput {
         Ok(t)
     }
 
-    /// The stored frame, once its descriptor is known.
-    fn into_new_frame(self, timestamp: f64, descriptor: Vec<f32>) -> NewFrame {
+    /// The stored frame, once its descriptor (and the image's features) are known.
+    fn into_new_frame(self, timestamp: f64, prepared: Prepared) -> NewFrame {
         NewFrame {
             frame_id: self.frame_id,
             robot_id: self.robot_id,
             timestamp,
             pose: self.pose,
             metadata: self.metadata,
-            descriptor,
+            descriptor: prepared.descriptor,
+            features: match prepared.features {
+                QueryFeatures::Some(f) => Some(f.encode()),
+                QueryFeatures::None(_) => None,
+            },
         }
     }
 }
@@ -135,11 +171,17 @@ pub struct CreateSession {
     pub name: String,
     pub storage: Storage,
     pub default_query: QueryOverrides,
+    /// The camera of the session's frames: verified loops then carry the relative pose.
+    pub camera: Option<Camera>,
+}
+
+fn intrinsics(c: &Camera) -> Intrinsics {
+    Intrinsics { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, dist: c.distortion }
 }
 
 impl LoopService {
-    pub fn new(engine: Engine, store: Arc<Store>, max_jobs: usize) -> Self {
-        let service = Self { engine, store, jobs: Arc::new(Jobs::new(max_jobs)) };
+    pub fn new(engine: Engine, store: Arc<Store>, max_jobs: usize, verify: VerifyConfig) -> Self {
+        let service = Self { engine, store, jobs: Arc::new(Jobs::new(max_jobs)), verifier: Verifier::new(verify) };
         service.report_foreign_sessions();
         service
     }
@@ -162,6 +204,9 @@ impl LoopService {
     pub async fn create_session(&self, req: CreateSession) -> Result<SessionInfo, ApiError> {
         let defaults = req.default_query.apply(&LoopQuery::default());
         defaults.validate().map_err(ApiError::InvalidArgument)?;
+        if let Some(c) = &req.camera {
+            intrinsics(c).validate().map_err(|e| ApiError::InvalidArgument(format!("camera: {e}")))?;
+        }
         let descriptor_id = self.engine.info().descriptor_id.clone();
         let meta = self
             .store
@@ -172,6 +217,7 @@ impl LoopService {
                 descriptor_id,
                 req.storage,
                 defaults,
+                req.camera,
             )
             .await?;
         Ok(self.store.session(&meta.id)?.info())
@@ -213,14 +259,33 @@ impl LoopService {
         )))
     }
 
-    async fn descriptor(&self, s: &Session, content: Content) -> Result<Vec<f32>, ApiError> {
-        match content {
-            Content::Image(bytes) => {
-                self.check_space(s)?;
-                Ok(self.engine.embed_image(bytes, Variant::FULL).await?)
+    /// The descriptor of a frame's content and, for an image when `features` is asked for, its
+    /// local features, extracted on the verification workers while the model embeds it.
+    async fn prepare(&self, s: &Session, content: Content, features: bool) -> Result<Prepared, ApiError> {
+        let bytes = match content {
+            Content::Descriptor(descriptor) => {
+                let none = QueryFeatures::None("the query has no image (descriptor only)".into());
+                return Ok(Prepared { descriptor, features: none });
             }
-            Content::Descriptor(d) => Ok(d),
+            Content::Image(bytes) => bytes,
+        };
+        self.check_space(s)?;
+        let embed = self.engine.embed_image(bytes.clone(), Variant::FULL);
+        if !features {
+            let none = QueryFeatures::None("feature extraction is off".into());
+            return Ok(Prepared { descriptor: embed.await?, features: none });
         }
+        let (descriptor, extracted) = tokio::join!(embed, self.verifier.extract(bytes, self.engine.info().limits));
+        let features = match extracted {
+            Ok(f) => QueryFeatures::Some(Arc::new(f)),
+            Err(e) => QueryFeatures::None(format!("no features: {e}")),
+        };
+        Ok(Prepared { descriptor: descriptor?, features })
+    }
+
+    /// Whether frames keep their local features (the server's setting).
+    fn keeps_features(&self) -> bool {
+        self.verifier.config().max_feature_bytes > 0
     }
 
     /// The session and the frame's timestamp, after every check that needs no forward pass.
@@ -236,13 +301,46 @@ impl LoopService {
     pub async fn add_frame(&self, session: &str, mut f: FrameInput) -> Result<u64, ApiError> {
         let (s, t) = self.check_frame(session, &f)?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
-        let descriptor = self.descriptor(&s, content).await?;
-        self.store_frame(&s, f.into_new_frame(t, descriptor)).await
+        let prepared = self.prepare(&s, content, self.keeps_features()).await?;
+        self.store_frame(&s, f.into_new_frame(t, prepared)).await
     }
 
     async fn store_frame(&self, s: &Arc<Session>, frame: NewFrame) -> Result<u64, ApiError> {
         let ids = self.store.add_frames(s, vec![frame]).await?;
         ids.first().copied().ok_or_else(|| ApiError::Internal("no frame id returned".into()))
+    }
+
+    /// Ranked candidates: the store's best descriptor matches, the first K of them checked
+    /// geometrically when the query asks for it, then ordered by the one decision rule.
+    async fn search(
+        &self,
+        s: &Arc<Session>,
+        descriptor: Vec<f32>,
+        features: &QueryFeatures,
+        q: &LoopQuery,
+    ) -> Result<Vec<LoopMatch>, ApiError> {
+        if !q.verify.geometric {
+            let matches = self.store.query(s, descriptor, q).await?;
+            return Ok(matches.into_iter().map(|m| LoopMatch { m, verification: None }).collect());
+        }
+        let wide = LoopQuery { k: q.k.max(q.verify.candidates).min(MAX_K), ..q.clone() };
+        let matches = self.store.query(s, descriptor, &wide).await?;
+        let checked = q.verify.candidates.min(matches.len());
+        let query = match features {
+            QueryFeatures::Some(f) => Ok(f.clone()),
+            QueryFeatures::None(why) => Err(why.clone()),
+        };
+        let mut candidates = Vec::with_capacity(matches.len());
+        for (i, m) in matches.into_iter().enumerate() {
+            let stored = if i < checked && query.is_ok() { s.features(m.frame_id)? } else { None };
+            candidates.push((m, stored.and_then(|b| Features::decode(&b).ok())));
+        }
+        let camera = s.meta.camera.as_ref().map(intrinsics);
+        let params = VerifyParams { min_inliers: q.verify.min_inliers, ..Default::default() };
+        let mut out =
+            self.verifier.check(query, candidates, checked, camera, params).await.map_err(ApiError::Internal)?;
+        out.truncate(q.k);
+        Ok(out)
     }
 
     pub async fn query(
@@ -252,7 +350,7 @@ impl LoopService {
         at_time: Option<f64>,
         target: QueryTarget,
         options: &QueryOverrides,
-    ) -> Result<Vec<Match>, ApiError> {
+    ) -> Result<Vec<LoopMatch>, ApiError> {
         let s = self.store.session(session)?;
         let mut q = options.apply(&s.meta.default_query);
         q.robot_id = robot_id.filter(|r| !r.is_empty());
@@ -262,10 +360,19 @@ impl LoopService {
         q.at_time = at_time;
         q.validate().map_err(ApiError::InvalidArgument)?;
         match target {
-            QueryTarget::Frame(id) => Ok(self.store.query_frame(&s, id, &q).await?),
+            QueryTarget::Frame(id) => {
+                let stored = s.features(id)?.and_then(|b| Features::decode(&b).ok());
+                let features = match stored {
+                    Some(f) => QueryFeatures::Some(Arc::new(f)),
+                    None => QueryFeatures::None("the query frame has no stored features".into()),
+                };
+                let d = s.descriptor(id)?;
+                let q = LoopQuery { exclude_frame: Some(id), ..q };
+                self.search(&s, d, &features, &q).await
+            }
             QueryTarget::Content(c) => {
-                let d = self.descriptor(&s, c).await?;
-                Ok(self.store.query(&s, d, &q).await?)
+                let p = self.prepare(&s, c, q.verify.geometric).await?;
+                self.search(&s, p.descriptor, &p.features, &q).await
             }
         }
     }
@@ -276,16 +383,21 @@ impl LoopService {
         session: &str,
         mut f: FrameInput,
         options: &QueryOverrides,
-    ) -> Result<(u64, Vec<Match>), ApiError> {
+    ) -> Result<(u64, Vec<LoopMatch>), ApiError> {
         let (s, t) = self.check_frame(session, &f)?;
         let mut q = options.apply(&s.meta.default_query);
         q.robot_id = Some(f.robot_id.clone());
         q.at_time = Some(t);
         q.validate().map_err(ApiError::InvalidArgument)?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
-        let descriptor = self.descriptor(&s, content).await?;
-        let matches = self.store.query(&s, descriptor.clone(), &q).await?;
-        let id = self.store_frame(&s, f.into_new_frame(t, descriptor)).await?;
+        let prepared = self.prepare(&s, content, q.verify.geometric || self.keeps_features()).await?;
+        let matches = self.search(&s, prepared.descriptor.clone(), &prepared.features, &q).await?;
+        let prepared = if self.keeps_features() {
+            prepared
+        } else {
+            Prepared { features: QueryFeatures::None(String::new()), ..prepared }
+        };
+        let id = self.store_frame(&s, f.into_new_frame(t, prepared)).await?;
         Ok((id, matches))
     }
 

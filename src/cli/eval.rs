@@ -1,5 +1,7 @@
 use super::{ModelArgs, VariantArgs};
 use crate::eval::run::{run as run_eval, EvalSpec};
+use crate::store::query::VerifyOptions;
+use crate::verify::geometric::Intrinsics;
 use anyhow::Result;
 use clap::Args;
 use std::path::PathBuf;
@@ -46,9 +48,39 @@ pub struct EvalArgs {
     /// Only images whose file name contains this (e.g. "left_" for one camera of a stereo folder).
     #[arg(long)]
     pub filter: Option<String>,
+    /// Check each query's best candidates as the server does: none, or geometric (ORB + RANSAC).
+    #[arg(long, value_enum, default_value = "none")]
+    pub verify: VerifyMode,
+    /// Candidates checked per query (K).
+    #[arg(long, default_value_t = 5)]
+    pub verify_candidates: usize,
+    /// Inliers for a verified loop.
+    #[arg(long, default_value_t = 30)]
+    pub min_inliers: usize,
+    /// Camera intrinsics "fx,fy,cx,cy" or "fx,fy,cx,cy,k1,k2,p1,p2,k3": essential-matrix checks.
+    #[arg(long, value_parser = parse_intrinsics)]
+    pub intrinsics: Option<Intrinsics>,
     /// Descriptor cache (a rerun with other search settings does not embed again).
     #[arg(long, default_value = ".loopd-cache")]
     pub cache_dir: PathBuf,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum VerifyMode {
+    None,
+    Geometric,
+}
+
+fn parse_intrinsics(s: &str) -> Result<Intrinsics, String> {
+    let v: Vec<f64> =
+        s.split(',').map(|x| x.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| e.to_string())?;
+    let k = match v.as_slice() {
+        &[fx, fy, cx, cy] => Intrinsics { fx, fy, cx, cy, dist: None },
+        &[fx, fy, cx, cy, k1, k2, p1, p2, k3] => Intrinsics { fx, fy, cx, cy, dist: Some([k1, k2, p1, p2, k3]) },
+        _ => return Err(format!("expected 4 or 9 numbers, got {}", v.len())),
+    };
+    k.validate()?;
+    Ok(k)
 }
 
 pub fn run(a: EvalArgs) -> Result<ExitCode> {
@@ -76,7 +108,18 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     }
     let Some(sequence) = a.sequence.as_deref() else { anyhow::bail!("--sequence or --server is required") };
     let model = a.model.load()?;
+    let verify = (a.verify == VerifyMode::Geometric).then(|| VerifyOptions {
+        geometric: true,
+        candidates: a.verify_candidates,
+        min_inliers: a.min_inliers,
+    });
+    if let Some(v) = &verify {
+        let q = crate::store::query::LoopQuery { verify: v.clone(), ..Default::default() };
+        q.validate().map_err(anyhow::Error::msg)?;
+    }
     let spec = EvalSpec {
+        verify,
+        intrinsics: a.intrinsics,
         sequence,
         query_sequence: a.query_sequence.as_deref(),
         gt: &a.gt,
@@ -93,6 +136,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     } else {
         let r = &out.report;
         println!("{} ({}), {} queries, {} with a loop", out.variant, out.descriptor_id, r.queries, r.positives);
+        println!("verification: {}", out.verify);
         println!(
             "recall@100%precision {:.4} (threshold {:?})",
             r.recall_at_100_precision, r.threshold_at_100_precision

@@ -4,6 +4,8 @@ use crate::engine::EngineConfig;
 use crate::model::device::parse_device;
 use crate::model::preprocess::ImageLimits;
 use crate::store::SearchConfig;
+use crate::verify::features::FeatureParams;
+use crate::verify::pool::VerifyConfig;
 use anyhow::Result;
 use clap::Args;
 use std::net::SocketAddr;
@@ -56,6 +58,16 @@ pub struct ServeArgs {
     /// number of cores); more wait their turn.
     #[arg(long, env = "LOOPD_SEARCH_WORKERS")]
     pub search_workers: Option<usize>,
+    /// ORB features extracted per frame for geometric verification.
+    #[arg(long, env = "LOOPD_MAX_FEATURES", default_value_t = 1000)]
+    pub max_features: usize,
+    /// Largest stored feature record per frame (bytes; 0 keeps no features, so stored frames
+    /// cannot be verified).
+    #[arg(long, env = "LOOPD_MAX_FEATURE_BYTES", default_value_t = 64 << 10)]
+    pub max_feature_bytes: usize,
+    /// Feature extractions and candidate checks running at once (default: number of cores).
+    #[arg(long, env = "LOOPD_VERIFY_WORKERS")]
+    pub verify_workers: Option<usize>,
 }
 
 impl ServeArgs {
@@ -95,6 +107,14 @@ impl ServeArgs {
             max_body_bytes: self.max_body_bytes.max(self.max_image_bytes + (1 << 20)),
             max_jobs: self.max_jobs,
             search: SearchConfig::default(),
+            verify: {
+                let defaults = VerifyConfig::default();
+                VerifyConfig {
+                    features: FeatureParams { max_features: self.max_features.clamp(1, 20_000), ..defaults.features },
+                    max_feature_bytes: self.max_feature_bytes,
+                    workers: self.verify_workers.unwrap_or(defaults.workers).max(1),
+                }
+            },
         }
     }
 }

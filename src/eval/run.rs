@@ -8,8 +8,13 @@ use crate::model::network::Variant;
 use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
 use crate::store::index::SessionIndex;
-use crate::store::query::LoopQuery;
+use crate::store::query::{LoopQuery, VerifyOptions};
 use crate::store::Storage;
+use crate::verify::{
+    self,
+    features::{from_image_bytes, FeatureParams, Features},
+    geometric::{Intrinsics, VerifyParams},
+};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
@@ -123,6 +128,10 @@ pub fn embed_files(engine: &Engine, files: &[PathBuf], setup: &EmbedSetup, label
 }
 
 pub struct EvalSpec<'a> {
+    /// Candidates checked as the server checks them (None: descriptor ranking only).
+    pub verify: Option<VerifyOptions>,
+    /// The camera's intrinsics, for essential-matrix checks and relative poses.
+    pub intrinsics: Option<Intrinsics>,
     pub sequence: &'a Path,
     pub query_sequence: Option<&'a Path>,
     pub gt: &'a str,
@@ -137,6 +146,8 @@ pub struct EvalSpec<'a> {
 pub struct EvalOutput {
     pub descriptor_id: String,
     pub variant: String,
+    /// "none" or "geometric (K candidates, N inliers)".
+    pub verify: String,
     pub sequence: String,
     pub query_sequence: Option<String>,
     pub frames: usize,
@@ -165,23 +176,62 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         index.push(i as u64, "ref", i as f64, None, d);
     }
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let results: Vec<QueryResult> = match &query_desc {
+    // The query of frame i: its descriptor and the options of its search.
+    let query_of = |i: usize| -> Option<(&Vec<f32>, LoopQuery)> {
+        let k = spec.verify.as_ref().map_or(1, |v| v.candidates);
+        match &query_desc {
+            Some(qd) => Some((&qd[i], LoopQuery { k, ..Default::default() })),
+            // One sequence: only earlier frames outside the exclusion window.
+            None if i > spec.exclude => {
+                let range = Some((0, (i - spec.exclude - 1) as u64));
+                Some((&ref_desc[i], LoopQuery { k, frame_id_range: range, ..Default::default() }))
+            }
+            None => None,
+        }
+    };
+    let results: Vec<QueryResult> = match (&spec.verify, &query_desc) {
+        (Some(v), _) => {
+            let ref_features = extract_all(&refs, "reference features")?;
+            let query_features = match &queries {
+                Some(q) => Some(extract_all(q, "query features")?),
+                None => None,
+            };
+            let params = VerifyParams { min_inliers: v.min_inliers, ..Default::default() };
+            (0..nq)
+                .map(|i| {
+                    let Some((q, opts)) = query_of(i) else { return QueryResult { query: i, best: None } };
+                    let qf = query_features.as_ref().unwrap_or(&ref_features)[i].as_ref();
+                    let candidates = index
+                        .search(q, &opts, threads)
+                        .into_iter()
+                        .map(|m| {
+                            let f = ref_features[m.frame_id as usize].clone().ok();
+                            (m, f)
+                        })
+                        .collect();
+                    let ranked = verify::check(
+                        qf.map_err(String::as_str),
+                        candidates,
+                        v.candidates,
+                        spec.intrinsics.as_ref(),
+                        &params,
+                    );
+                    let best = ranked.first().map(|c| (c.m.frame_id as usize, verify::rank_score(c)));
+                    QueryResult { query: i, best }
+                })
+                .collect()
+        }
         // Two traversals: every query has the same options, so they go as one batch.
-        Some(qd) => index
+        (None, Some(qd)) => index
             .search_batch(qd, &LoopQuery { k: 1, ..Default::default() }, threads)
             .iter()
             .enumerate()
             .map(|(i, m)| QueryResult { query: i, best: m.first().map(|m| (m.frame_id as usize, m.score)) })
             .collect(),
-        // One sequence: only earlier frames outside the exclusion window, a range per query.
-        None => (0..nq)
+        (None, None) => (0..nq)
             .map(|i| {
-                if i <= spec.exclude {
-                    return QueryResult { query: i, best: None };
-                }
-                let range = Some((0, (i - spec.exclude - 1) as u64));
-                let opts = LoopQuery { k: 1, frame_id_range: range, ..Default::default() };
-                let best = index.search(&ref_desc[i], &opts, 1).first().map(|m| (m.frame_id as usize, m.score));
+                let best = query_of(i)
+                    .and_then(|(q, opts)| index.search(q, &opts, 1).first().map(|m| (m.frame_id as usize, m.score)));
                 QueryResult { query: i, best }
             })
             .collect(),
@@ -190,6 +240,10 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
     let out = EvalOutput {
         descriptor_id: engine.info().variant_id(setup.variant).to_string(),
         variant: setup.variant.name().to_string(),
+        verify: spec.verify.as_ref().map_or_else(
+            || "none".to_string(),
+            |v| format!("geometric ({} candidates, {} inliers)", v.candidates, v.min_inliers),
+        ),
         sequence: spec.sequence.display().to_string(),
         query_sequence: spec.query_sequence.map(|p| p.display().to_string()),
         frames: refs.len(),
@@ -217,6 +271,31 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         plots::similarity(&dir.join("similarity.png"), &scores, qd.len(), ref_desc.len(), &truth)?;
     }
     Ok(out)
+}
+
+/// Local features of every file (or why not), extracted as the server extracts them, on all cores.
+fn extract_all(files: &[PathBuf], label: &str) -> Result<Vec<Result<Features, String>>> {
+    let bar = ProgressBar::new(files.len() as u64)
+        .with_style(ProgressStyle::with_template("{msg} {pos}/{len} {wide_bar} {per_sec}").expect("template"))
+        .with_message(label.to_string());
+    let (params, limits) = (FeatureParams::default(), ImageLimits::default());
+    let one = |p: &PathBuf| {
+        let r = std::fs::read(p)
+            .map_err(|e| format!("{}: {e}", p.display()))
+            .and_then(|b| from_image_bytes(&b, &limits, &params));
+        bar.inc(1);
+        r
+    };
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let chunk = files.len().div_ceil(threads).max(1);
+    let out = std::thread::scope(|sc| {
+        let parts: Vec<_> =
+            files.chunks(chunk).map(|c| sc.spawn(move || c.iter().map(one).collect::<Vec<_>>())).collect();
+        parts.into_iter().map(|h| h.join()).collect::<std::result::Result<Vec<_>, _>>()
+    })
+    .map_err(|_| anyhow::anyhow!("feature extraction thread panicked"))?;
+    bar.finish_and_clear();
+    Ok(out.into_iter().flatten().collect())
 }
 
 /// Loads the model, starts an engine and evaluates.

@@ -57,6 +57,9 @@ pub struct NewFrame {
     pub pose: Option<Pose>,
     pub metadata: Option<serde_json::Value>,
     pub descriptor: Vec<f32>,
+    /// Local features for verification, opaque to the store (kept beside the frame, written and
+    /// removed with it, never read at start-up).
+    pub features: Option<Vec<u8>>,
 }
 
 /// What a session holds, for listings.
@@ -73,6 +76,7 @@ pub struct SessionInfo {
 pub struct Session {
     pub meta: SessionMeta,
     tree: sled::Tree,
+    features: sled::Tree,
     index: RwLock<SessionIndex>,
     next_id: AtomicU64,
     bytes: AtomicU64,
@@ -93,6 +97,10 @@ pub struct Store {
 
 fn session_tree_name(id: &str) -> String {
     format!("session/{id}")
+}
+
+fn features_tree_name(id: &str) -> String {
+    format!("features/{id}")
 }
 
 /// Letters, digits, '-', '_' and '.', with at least one letter or digit ("." and ".." are path
@@ -192,6 +200,7 @@ impl Store {
         descriptor_id: String,
         storage: Storage,
         default_query: LoopQuery,
+        camera: Option<record::Camera>,
     ) -> Result<SessionMeta, StoreError> {
         if !(1..=65536).contains(&dim) {
             return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
@@ -213,7 +222,8 @@ impl Store {
             }
             let created =
                 std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64();
-            let meta = SessionMeta { id: id.clone(), name, created, dim, descriptor_id, storage, default_query };
+            let meta =
+                SessionMeta { id: id.clone(), name, created, dim, descriptor_id, storage, default_query, camera };
             let session = Session::load(&self.db, meta.clone(), self.search)?;
             self.sessions_tree.insert(id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises"))?;
             self.sessions.write().insert(id, Arc::new(session));
@@ -243,6 +253,7 @@ impl Store {
             }
             self.sessions_tree.remove(id.as_bytes())?;
             self.db.drop_tree(session_tree_name(id))?;
+            self.db.drop_tree(features_tree_name(id))?;
         }
         self.durable().await
     }
@@ -272,7 +283,7 @@ impl Store {
                     if !s.insert_new(id, &value)? {
                         // All or nothing: take back what this call already wrote.
                         for &done in &written {
-                            s.tree.remove(frame_key(done))?;
+                            s.remove(done)?;
                         }
                         return Err(StoreError::FrameExists(s.meta.id.clone(), id));
                     }
@@ -286,6 +297,9 @@ impl Store {
                     }
                 },
             };
+            if let Some(features) = &f.features {
+                s.features.insert(frame_key(id), features.as_slice())?;
+            }
             added_bytes += (8 + value.len()) as u64;
             written.push(id);
         }
@@ -303,7 +317,7 @@ impl Store {
             Err(_) => {
                 // Not acknowledged: take the frames back so they do not reappear after a restart.
                 for &id in &ids {
-                    let _ = session.tree.remove(frame_key(id));
+                    let _ = session.remove(id);
                 }
             }
         });
@@ -322,14 +336,6 @@ impl Store {
         })
         .await
         .map_err(|e| StoreError::Storage(format!("search worker failed: {e}")))?
-    }
-
-    /// Ranked matches for a stored frame, which is itself never among them.
-    pub async fn query_frame(&self, s: &Arc<Session>, frame_id: u64, q: &LoopQuery) -> Result<Vec<Match>, StoreError> {
-        let d = s.index.read().descriptor(frame_id);
-        let d = d.ok_or_else(|| StoreError::FrameNotFound(s.meta.id.clone(), frame_id))?;
-        let q = LoopQuery { exclude_frame: Some(frame_id), ..q.clone() };
-        self.query(s, d, &q).await
     }
 
     async fn durable(&self) -> Result<(), StoreError> {
@@ -391,6 +397,27 @@ impl Session {
         Ok(self.index.read().search(&descriptor, q, threads))
     }
 
+    /// The frame's stored local features, if it has any (searchable frames only).
+    pub fn features(&self, frame_id: u64) -> Result<Option<sled::IVec>, StoreError> {
+        if !self.index.read().contains(frame_id) {
+            return Err(StoreError::FrameNotFound(self.meta.id.clone(), frame_id));
+        }
+        Ok(self.features.get(frame_key(frame_id))?)
+    }
+
+    /// A searchable frame's descriptor as the index holds it.
+    pub fn descriptor(&self, frame_id: u64) -> Result<Vec<f32>, StoreError> {
+        let d = self.index.read().descriptor(frame_id);
+        d.ok_or_else(|| StoreError::FrameNotFound(self.meta.id.clone(), frame_id))
+    }
+
+    /// Takes a frame that was never acknowledged back off disk.
+    fn remove(&self, frame_id: u64) -> Result<(), StoreError> {
+        self.tree.remove(frame_key(frame_id))?;
+        self.features.remove(frame_key(frame_id))?;
+        Ok(())
+    }
+
     /// A stored frame: header and descriptor as stored (f16 sessions give f16-rounded values).
     /// Read from the index's view, so a frame is visible here exactly when it is searchable.
     pub fn frame(&self, frame_id: u64) -> Result<(FrameHeader, Vec<f32>), StoreError> {
@@ -404,6 +431,7 @@ impl Session {
 
     fn load(db: &sled::Db, meta: SessionMeta, search: SearchConfig) -> Result<Self, StoreError> {
         let tree = db.open_tree(session_tree_name(&meta.id))?;
+        let features = db.open_tree(features_tree_name(&meta.id))?;
         let mut index = SessionIndex::new(meta.dim, meta.storage);
         if let Some(device) = search.device {
             index.search_on(device, search.device_min_rows);
@@ -417,7 +445,14 @@ impl Session {
             bytes += (k.len() + v.len()) as u64;
         }
         let next = index.max_frame_id().map_or(0, |m| m.saturating_add(1));
-        Ok(Self { meta, tree, index: RwLock::new(index), next_id: AtomicU64::new(next), bytes: AtomicU64::new(bytes) })
+        Ok(Self {
+            meta,
+            tree,
+            features,
+            index: RwLock::new(index),
+            next_id: AtomicU64::new(next),
+            bytes: AtomicU64::new(bytes),
+        })
     }
 
     /// Inserts only if the frame id is free (atomic in sled). False: the id is taken.

@@ -37,6 +37,32 @@ pub struct LoopQuery {
     /// A frame never returned (the stored frame a query is made from); not a client option.
     #[serde(skip)]
     pub exclude_frame: Option<u64>,
+    /// How candidates are checked before they are returned (the store itself only ranks by
+    /// cosine; the service runs the checks).
+    pub verify: VerifyOptions,
+}
+
+/// Candidate checks a query asks for.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct VerifyOptions {
+    /// Check the best candidates with local features and RANSAC.
+    pub geometric: bool,
+    /// How many of the best descriptor matches are checked (K).
+    pub candidates: usize,
+    /// Geometric inliers needed for a verified loop.
+    pub min_inliers: usize,
+}
+
+/// Most candidates one query may have checked (each costs a few milliseconds of CPU).
+pub const MAX_CANDIDATES: usize = 50;
+
+impl Default for VerifyOptions {
+    fn default() -> Self {
+        // docs/verification.md: true desk and EuRoC loops have 91+ inliers at 1,000 features,
+        // non-loops at most 15.
+        Self { geometric: true, candidates: 5, min_inliers: 30 }
+    }
 }
 
 impl Default for LoopQuery {
@@ -52,6 +78,7 @@ impl Default for LoopQuery {
             time_range: None,
             frame_id_range: None,
             exclude_frame: None,
+            verify: VerifyOptions::default(),
         }
     }
 }
@@ -80,6 +107,13 @@ impl LoopQuery {
             if a > b {
                 return Err(format!("frame id range {a}..{b} is empty (from > to)"));
             }
+        }
+        let v = &self.verify;
+        if !(1..=MAX_CANDIDATES).contains(&v.candidates) {
+            return Err(format!("verify_candidates = {} is out of range 1..={MAX_CANDIDATES}", v.candidates));
+        }
+        if !(8..=10_000).contains(&v.min_inliers) {
+            return Err(format!("min_inliers = {} is out of range 8..=10000", v.min_inliers));
         }
         Ok(())
     }

@@ -14,6 +14,21 @@ pub struct SessionMeta {
     pub storage: Storage,
     /// Defaults applied to this session's loop queries.
     pub default_query: super::query::LoopQuery,
+    /// The camera that takes the session's frames: verified loops then carry a relative pose.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<Camera>,
+}
+
+/// Pinhole intrinsics in pixels, with optional radial-tangential distortion (k1 k2 p1 p2 k3).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Camera {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub distortion: Option<[f64; 5]>,
 }
 
 /// A frame as stored (without its descriptor, which follows the JSON header raw).

@@ -1,0 +1,522 @@
+//! Geometric verification of a loop candidate: ORB Hamming 2-NN + Lowe ratio test, then
+//! RANSAC on the fundamental matrix (no intrinsics) or the essential matrix + `recoverPose`
+//! (intrinsics known, same camera for both frames).
+//!
+//! Pose convention: `RelativePose` is T_query_candidate, the pose of the CANDIDATE camera
+//! expressed in the QUERY camera frame: X_query = R · X_candidate + t, with |t| = 1
+//! (monocular scale is unknown). For world poses T_w_q, T_w_c: R = R_w_q^T · R_w_c.
+
+use nalgebra::{Matrix3, UnitQuaternion};
+use opencv::calib3d;
+use opencv::core::{self, DMatch, Mat, Point2f, TermCriteria, Vector};
+use opencv::features2d::BFMatcher;
+use opencv::prelude::*;
+
+use super::features::{Features, DESCRIPTOR_BYTES};
+
+/// Fewer correspondences than this cannot constrain F (8-point) robustly.
+const MIN_POINTS: usize = 8;
+/// Matching is O(n·m); refuse inputs far beyond any sane `max_features` instead of stalling.
+const MAX_POINTS: usize = 20_000;
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// OpenCV radial-tangential order: k1 k2 p1 p2 k3.
+    pub dist: Option<[f64; 5]>,
+}
+
+impl Intrinsics {
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.fx.is_finite() && self.fy.is_finite() && self.fx > 0.0 && self.fy > 0.0) {
+            return Err(format!("invalid intrinsics: fx={} fy={} must be finite and > 0", self.fx, self.fy));
+        }
+        if !(self.cx.is_finite() && self.cy.is_finite()) {
+            return Err(format!("invalid intrinsics: cx={} cy={} must be finite", self.cx, self.cy));
+        }
+        if let Some(d) = self.dist {
+            if d.iter().any(|v| !v.is_finite()) {
+                return Err(format!("invalid intrinsics: distortion {d:?} must be finite"));
+            }
+        }
+        Ok(())
+    }
+
+    fn camera_matrix(&self) -> opencv::Result<Mat> {
+        Mat::from_slice_2d(&[[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct VerifyParams {
+    /// Lowe ratio: keep a match if best < ratio · second best Hamming distance.
+    pub ratio: f32,
+    /// Geometric inliers needed to accept the loop.
+    pub min_inliers: usize,
+    /// RANSAC inlier threshold in ORIGINAL image pixels (Sampson / epipolar distance).
+    pub ransac_threshold_px: f64,
+    /// RANSAC confidence in (0, 1).
+    pub confidence: f64,
+    /// Robust estimator (OpenCV method flag).
+    pub method: Robust,
+    /// Upper bound on RANSAC iterations (bounds the cost of a non-loop candidate).
+    pub max_iters: u32,
+    /// Brute-force Hamming 2-NN implementation (identical results, different speed).
+    pub matcher: Matcher,
+}
+
+/// Both are exhaustive Hamming 2-NN. Debian's OpenCV 4.6 is built with an SSE2 baseline and
+/// does not dispatch the Hamming kernel, so BFMatcher is ~4x slower than the plain scan.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Matcher {
+    /// Plain-Rust scan over u64 words with `count_ones` (default).
+    Scan,
+    /// OpenCV `BFMatcher(NORM_HAMMING).knnMatch(k = 2)`.
+    OpenCv,
+}
+
+/// Robust estimator used for F / E.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Robust {
+    /// Classic OpenCV RANSAC (`FM_RANSAC` / `RANSAC`).
+    Ransac,
+    /// USAC with default settings (`USAC_DEFAULT`, OpenCV >= 4.5). Default: its SPRT test makes
+    /// hopeless candidates ~10x cheaper than classic RANSAC and it finds more inliers on loops.
+    UsacDefault,
+    /// USAC with MAGSAC++ scoring (`USAC_MAGSAC`).
+    UsacMagsac,
+    /// USAC with GC-RANSAC local optimisation (`USAC_ACCURATE`).
+    UsacAccurate,
+}
+
+impl Robust {
+    fn flag(self) -> i32 {
+        match self {
+            Robust::Ransac => calib3d::RANSAC,
+            Robust::UsacDefault => calib3d::USAC_DEFAULT,
+            Robust::UsacMagsac => calib3d::USAC_MAGSAC,
+            Robust::UsacAccurate => calib3d::USAC_ACCURATE,
+        }
+    }
+}
+
+impl Default for VerifyParams {
+    fn default() -> Self {
+        Self {
+            ratio: 0.8,
+            min_inliers: 30,
+            ransac_threshold_px: 2.0,
+            confidence: 0.999,
+            method: Robust::UsacDefault,
+            max_iters: 2000,
+            matcher: Matcher::Scan,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Verification {
+    /// Matches surviving the ratio test (one per candidate keypoint).
+    pub matches: usize,
+    pub inliers: usize,
+    /// inliers / matches (0 when there are no matches).
+    pub inlier_ratio: f32,
+    pub verified: bool,
+    /// Why the candidate was not verified.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// Only with intrinsics and only when verified; see the module doc for the convention.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub relative_pose: Option<RelativePose>,
+}
+
+impl Verification {
+    /// Not checked at all (no features to check with), and why.
+    pub fn unchecked(reason: String) -> Self {
+        Self::rejected(0, 0, reason)
+    }
+
+    fn rejected(matches: usize, inliers: usize, reason: String) -> Self {
+        Self {
+            matches,
+            inliers,
+            inlier_ratio: ratio_of(inliers, matches),
+            verified: false,
+            reason: Some(reason),
+            relative_pose: None,
+        }
+    }
+}
+
+/// T_query_candidate: unit quaternion (qw >= 0) and unit translation direction.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct RelativePose {
+    pub qx: f64,
+    pub qy: f64,
+    pub qz: f64,
+    pub qw: f64,
+    pub tx: f64,
+    pub ty: f64,
+    pub tz: f64,
+}
+
+impl RelativePose {
+    pub fn rotation(&self) -> UnitQuaternion<f64> {
+        UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(self.qw, self.qx, self.qy, self.qz))
+    }
+}
+
+fn ratio_of(a: usize, b: usize) -> f32 {
+    if b == 0 {
+        0.0
+    } else {
+        a as f32 / b as f32
+    }
+}
+
+/// Never panics: every failure (bad input, degenerate geometry, OpenCV error) is
+/// `verified: false` with a reason. Invalid intrinsics are also a rejection with reason
+/// "invalid intrinsics: ..."; call `Intrinsics::validate` at the API edge to turn it into a 400.
+pub fn verify(query: &Features, candidate: &Features, intr: Option<&Intrinsics>, p: &VerifyParams) -> Verification {
+    match verify_inner(query, candidate, intr, p) {
+        Ok(v) => v,
+        Err(reason) => Verification::rejected(0, 0, reason),
+    }
+}
+
+fn check_params(p: &VerifyParams) -> Result<(), String> {
+    if !(p.ratio > 0.0 && p.ratio <= 1.0) {
+        return Err(format!("invalid params: ratio {} must be in (0, 1]", p.ratio));
+    }
+    if !(p.ransac_threshold_px.is_finite() && p.ransac_threshold_px > 0.0) {
+        return Err(format!("invalid params: ransac_threshold_px {} must be > 0", p.ransac_threshold_px));
+    }
+    if !(p.confidence > 0.0 && p.confidence < 1.0) {
+        return Err(format!("invalid params: confidence {} must be in (0, 1)", p.confidence));
+    }
+    Ok(())
+}
+
+fn verify_inner(
+    q: &Features,
+    c: &Features,
+    intr: Option<&Intrinsics>,
+    p: &VerifyParams,
+) -> Result<Verification, String> {
+    check_params(p)?;
+    q.validate().map_err(|e| format!("query {e}"))?;
+    c.validate().map_err(|e| format!("candidate {e}"))?;
+    if let Some(k) = intr {
+        k.validate()?;
+        // One intrinsics set is only meaningful if both frames come from the same sensor mode.
+        if (q.width, q.height) != (c.width, c.height) {
+            return Err(format!(
+                "image sizes differ ({}x{} vs {}x{}) but one set of intrinsics was given",
+                q.width, q.height, c.width, c.height
+            ));
+        }
+    }
+    if q.len() > MAX_POINTS || c.len() > MAX_POINTS {
+        return Err(format!("too many features (query {}, candidate {}; limit {MAX_POINTS})", q.len(), c.len()));
+    }
+    if q.len() < MIN_POINTS || c.len() < MIN_POINTS {
+        return Ok(Verification::rejected(
+            0,
+            0,
+            format!("too few features (query {}, candidate {})", q.len(), c.len()),
+        ));
+    }
+
+    let matches = ratio_matches(q, c, p.ratio, p.matcher)?;
+    let n = matches.len();
+    if n < MIN_POINTS.max(p.min_inliers) {
+        return Ok(Verification::rejected(n, 0, format!("too few matches after ratio test ({n})")));
+    }
+
+    // points1 = candidate, points2 = query, so that recoverPose yields X_q = R X_c + t.
+    let mut pc = Vector::<Point2f>::with_capacity(n);
+    let mut pq = Vector::<Point2f>::with_capacity(n);
+    for &(qi, ci) in &matches {
+        pq.push(Point2f::new(q.points[qi][0], q.points[qi][1]));
+        pc.push(Point2f::new(c.points[ci][0], c.points[ci][1]));
+    }
+
+    let (mut inliers, pose) = match intr {
+        None => (fundamental_inliers(&pc, &pq, p).map_err(|e| format!("fundamental RANSAC failed: {e}"))?, None),
+        Some(k) => essential_pose(&pc, &pq, k, p).map_err(|e| format!("essential RANSAC failed: {e}"))?,
+    };
+    // Zero baseline, pure rotation or a planar scene make F/E degenerate, and USAC then rejects
+    // the model (identical images give 0 inliers). Such views are still consistent under a
+    // homography, which is a valid verification; the pose is then left out (t undefined).
+    if inliers < p.min_inliers {
+        let h = homography_inliers(&pc, &pq, p).map_err(|e| format!("homography RANSAC failed: {e}"))?;
+        if h >= p.min_inliers {
+            inliers = h;
+        }
+    }
+
+    if inliers < p.min_inliers {
+        return Ok(Verification::rejected(n, inliers, format!("too few inliers ({inliers} < {})", p.min_inliers)));
+    }
+    Ok(Verification {
+        matches: n,
+        inliers,
+        inlier_ratio: ratio_of(inliers, n),
+        verified: true,
+        reason: None,
+        relative_pose: pose,
+    })
+}
+
+/// Nearest and second-nearest neighbour of one query descriptor in the candidate set.
+#[derive(Clone, Copy)]
+struct Knn2 {
+    query: usize,
+    train: usize,
+    best: u32,
+    second: u32,
+}
+
+/// Returns (query index, candidate index) pairs that pass the ratio test, one per candidate keypoint.
+fn ratio_matches(q: &Features, c: &Features, ratio: f32, matcher: Matcher) -> Result<Vec<(usize, usize)>, String> {
+    let knn = match matcher {
+        Matcher::Scan => knn2_scan(q, c),
+        Matcher::OpenCv => knn2_opencv(q, c).map_err(|e| format!("BFMatcher failed: {e}"))?,
+    };
+    // Best query match per candidate keypoint: duplicates would inflate the inlier count.
+    let mut best: Vec<Option<(usize, u32)>> = vec![None; c.len()];
+    for m in knn {
+        if m.query >= q.len() || m.train >= c.len() || (m.best as f32) >= ratio * (m.second as f32) {
+            continue;
+        }
+        if best[m.train].is_none_or(|(_, d)| m.best < d) {
+            best[m.train] = Some((m.query, m.best));
+        }
+    }
+    Ok(best.iter().enumerate().filter_map(|(ci, b)| b.map(|(qi, _)| (qi, ci))).collect())
+}
+
+fn as_words(f: &Features) -> Vec<[u64; 4]> {
+    f.descriptors
+        .iter()
+        .map(|d| {
+            let w = |k: usize| {
+                let mut b = [0u8; 8];
+                b.copy_from_slice(&d[8 * k..8 * k + 8]);
+                u64::from_le_bytes(b)
+            };
+            [w(0), w(1), w(2), w(3)]
+        })
+        .collect()
+}
+
+/// Exhaustive Hamming 2-NN; same result as BFMatcher(NORM_HAMMING).knnMatch(k=2), ties included.
+fn knn2_scan(q: &Features, c: &Features) -> Vec<Knn2> {
+    let (qw, cw) = (as_words(q), as_words(c));
+    qw.iter()
+        .enumerate()
+        .map(|(qi, a)| {
+            let mut m = Knn2 { query: qi, train: 0, best: u32::MAX, second: u32::MAX };
+            for (ci, b) in cw.iter().enumerate() {
+                let d = (a[0] ^ b[0]).count_ones()
+                    + (a[1] ^ b[1]).count_ones()
+                    + (a[2] ^ b[2]).count_ones()
+                    + (a[3] ^ b[3]).count_ones();
+                if d < m.best {
+                    m.second = m.best;
+                    m.best = d;
+                    m.train = ci;
+                } else if d < m.second {
+                    m.second = d;
+                }
+            }
+            m
+        })
+        .collect()
+}
+
+fn descriptor_mat(f: &Features) -> opencv::Result<opencv::boxed_ref::BoxedRef<'_, Mat>> {
+    Mat::new_rows_cols_with_data(f.len() as i32, DESCRIPTOR_BYTES as i32, f.descriptors.as_flattened())
+}
+
+fn knn2_opencv(q: &Features, c: &Features) -> opencv::Result<Vec<Knn2>> {
+    let qd = descriptor_mat(q)?;
+    let cd = descriptor_mat(c)?;
+    let matcher = BFMatcher::create(core::NORM_HAMMING, false)?;
+    let mut knn = Vector::<Vector<DMatch>>::new();
+    matcher.knn_train_match(&qd, &cd, &mut knn, 2, &core::no_array(), false)?;
+    let mut out = Vec::with_capacity(knn.len());
+    for pair in knn.iter() {
+        // Fewer than 2 neighbours (candidate has 1 descriptor): no ratio test possible.
+        if pair.len() < 2 {
+            continue;
+        }
+        let (m0, m1) = (pair.get(0)?, pair.get(1)?);
+        out.push(Knn2 {
+            query: m0.query_idx.max(0) as usize,
+            train: m0.train_idx.max(0) as usize,
+            // Hamming distances are integers stored as f32.
+            best: m0.distance as u32,
+            second: m1.distance as u32,
+        });
+    }
+    Ok(out)
+}
+
+fn iters(p: &VerifyParams) -> i32 {
+    i32::try_from(p.max_iters.max(1)).unwrap_or(i32::MAX)
+}
+
+fn fundamental_inliers(pc: &Vector<Point2f>, pq: &Vector<Point2f>, p: &VerifyParams) -> opencv::Result<usize> {
+    let mut mask = Mat::default();
+    let f = calib3d::find_fundamental_mat(
+        pc,
+        pq,
+        p.method.flag(),
+        p.ransac_threshold_px,
+        p.confidence,
+        iters(p),
+        &mut mask,
+    )?;
+    // Empty F means RANSAC found no model (degenerate configuration).
+    if f.empty() || mask.empty() {
+        return Ok(0);
+    }
+    Ok(core::count_non_zero(&mask)? as usize)
+}
+
+fn homography_inliers(pc: &Vector<Point2f>, pq: &Vector<Point2f>, p: &VerifyParams) -> opencv::Result<usize> {
+    let mut mask = Mat::default();
+    let h = calib3d::find_homography_ext(
+        pc,
+        pq,
+        p.method.flag(),
+        p.ransac_threshold_px,
+        &mut mask,
+        iters(p),
+        p.confidence,
+    )?;
+    if h.empty() || mask.empty() {
+        return Ok(0);
+    }
+    Ok(core::count_non_zero(&mask)? as usize)
+}
+
+fn essential_pose(
+    pc: &Vector<Point2f>,
+    pq: &Vector<Point2f>,
+    k: &Intrinsics,
+    p: &VerifyParams,
+) -> opencv::Result<(usize, Option<RelativePose>)> {
+    let kmat = k.camera_matrix()?;
+    let (pc, pq) = match k.dist {
+        Some(d) => (undistort(pc, &kmat, &d)?, undistort(pq, &kmat, &d)?),
+        None => (pc.clone(), pq.clone()),
+    };
+    let mut mask = Mat::default();
+    let e = calib3d::find_essential_mat(
+        &pc,
+        &pq,
+        &kmat,
+        p.method.flag(),
+        p.confidence,
+        p.ransac_threshold_px,
+        iters(p),
+        &mut mask,
+    )?;
+    // findEssentialMat may return several stacked 3x3 solutions (3k x 3); only 3x3 is usable.
+    if e.rows() != 3 || e.cols() != 3 || mask.empty() {
+        return Ok((0, None));
+    }
+    let inliers = core::count_non_zero(&mask)? as usize;
+    if inliers < p.min_inliers {
+        return Ok((inliers, None));
+    }
+    let (mut r, mut t) = (Mat::default(), Mat::default());
+    // RANSAC keeps the minimal-sample E; a least-squares 8-point E on all inliers (normalised
+    // coordinates) halves the rotation error on the EuRoC loops (see the prototype report).
+    let (nc, nq) = normalized_inliers(&pc, &pq, &mask, k)?;
+    if nc.len() < MIN_POINTS {
+        return Ok((inliers, None));
+    }
+    let e8 = calib3d::find_fundamental_mat(&nc, &nq, calib3d::FM_8POINT, 0.0, 0.0, 0, &mut core::no_array())?;
+    let e = if e8.rows() == 3 && e8.cols() == 3 { e8 } else { e };
+    let eye = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
+    let mut pose_mask = Mat::default();
+    // `recover_pose_estimated` is the (E, p1, p2, K, R, t, mask) overload; `recover_pose` takes focal/pp.
+    let good = calib3d::recover_pose_estimated(&e, &nc, &nq, &eye, &mut r, &mut t, &mut pose_mask)?;
+    if good <= 0 {
+        return Ok((inliers, None));
+    }
+    Ok((inliers, to_pose(&r, &t)?))
+}
+
+fn normalized_inliers(
+    pc: &Vector<Point2f>,
+    pq: &Vector<Point2f>,
+    mask: &Mat,
+    k: &Intrinsics,
+) -> opencv::Result<(Vector<Point2f>, Vector<Point2f>)> {
+    let m = mask.data_bytes()?;
+    if m.len() != pc.len() {
+        return Err(opencv::Error::new(
+            core::StsBadSize,
+            format!("inlier mask has {} entries for {} points", m.len(), pc.len()),
+        ));
+    }
+    let norm = |p: Point2f| Point2f::new(((p.x as f64 - k.cx) / k.fx) as f32, ((p.y as f64 - k.cy) / k.fy) as f32);
+    let mut nc = Vector::new();
+    let mut nq = Vector::new();
+    for (i, &keep) in m.iter().enumerate() {
+        if keep != 0 {
+            nc.push(norm(pc.get(i)?));
+            nq.push(norm(pq.get(i)?));
+        }
+    }
+    Ok((nc, nq))
+}
+
+fn undistort(pts: &Vector<Point2f>, kmat: &Mat, d: &[f64; 5]) -> opencv::Result<Vector<Point2f>> {
+    let dist = Mat::from_slice(d)?;
+    let mut out = Vector::<Point2f>::new();
+    // Default is 5 fixed iterations, too few for strong radial distortion (EuRoC k1=-0.28) at the edges.
+    let crit = TermCriteria::new(core::TermCriteria_COUNT + core::TermCriteria_EPS, 20, 1e-8)?;
+    // P = K keeps the output in pixels, so the RANSAC threshold stays in pixels.
+    calib3d::undistort_points_iter(pts, &mut out, kmat, &dist, &core::no_array(), kmat, crit)?;
+    Ok(out)
+}
+
+fn to_pose(r: &Mat, t: &Mat) -> opencv::Result<Option<RelativePose>> {
+    if r.rows() != 3 || r.cols() != 3 || t.total() != 3 {
+        return Ok(None);
+    }
+    let mut m = Matrix3::<f64>::zeros();
+    for i in 0..3 {
+        for j in 0..3 {
+            m[(i, j)] = *r.at_2d::<f64>(i as i32, j as i32)?;
+        }
+    }
+    let tv = [*t.at::<f64>(0)?, *t.at::<f64>(1)?, *t.at::<f64>(2)?];
+    if m.iter().chain(tv.iter()).any(|v| !v.is_finite()) {
+        return Ok(None);
+    }
+    let norm = (tv[0] * tv[0] + tv[1] * tv[1] + tv[2] * tv[2]).sqrt();
+    if norm <= f64::EPSILON {
+        return Ok(None);
+    }
+    let q = UnitQuaternion::from_matrix(&m);
+    // q and -q are the same rotation; fix the sign so results are comparable.
+    let s = if q.w < 0.0 { -1.0 } else { 1.0 };
+    Ok(Some(RelativePose {
+        qx: s * q.i,
+        qy: s * q.j,
+        qz: s * q.k,
+        qw: s * q.w,
+        tx: tv[0] / norm,
+        ty: tv[1] / norm,
+        tz: tv[2] / norm,
+    }))
+}

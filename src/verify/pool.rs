@@ -1,0 +1,81 @@
+//! Feature extraction and candidate checks on a bounded set of blocking threads, never on the
+//! request executor nor on the model thread.
+use super::features::{from_image_bytes, FeatureParams, Features};
+use super::geometric::{Intrinsics, VerifyParams};
+use super::LoopMatch;
+use crate::model::preprocess::ImageLimits;
+use crate::store::query::Match;
+use std::sync::Arc;
+use tokio::sync::Semaphore;
+
+#[derive(Clone, Debug)]
+pub struct VerifyConfig {
+    pub features: FeatureParams,
+    /// Largest stored feature record per frame; the weakest features beyond it are dropped.
+    pub max_feature_bytes: usize,
+    /// Extractions and checks running at once.
+    pub workers: usize,
+}
+
+impl Default for VerifyConfig {
+    fn default() -> Self {
+        Self {
+            features: FeatureParams::default(),
+            max_feature_bytes: 64 << 10,
+            workers: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        }
+    }
+}
+
+#[derive(Clone)]
+pub struct Verifier {
+    cfg: Arc<VerifyConfig>,
+    slots: Arc<Semaphore>,
+}
+
+impl Verifier {
+    pub fn new(cfg: VerifyConfig) -> Self {
+        let slots = Arc::new(Semaphore::new(cfg.workers.max(1)));
+        Self { cfg: Arc::new(cfg), slots }
+    }
+
+    pub fn config(&self) -> &VerifyConfig {
+        &self.cfg
+    }
+
+    /// Runs `f` on a blocking thread once a worker slot is free.
+    async fn run<T: Send + 'static>(&self, f: impl FnOnce() -> T + Send + 'static) -> Result<T, String> {
+        let permit = self.slots.clone().acquire_owned().await.map_err(|_| "verifier stopped".to_string())?;
+        tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            f()
+        })
+        .await
+        .map_err(|e| format!("verification worker failed: {e}"))
+    }
+
+    /// ORB features of an encoded image, capped to the stored size limit.
+    pub async fn extract(&self, image: bytes::Bytes, limits: ImageLimits) -> Result<Features, String> {
+        let cfg = self.cfg.clone();
+        let mut f = self.run(move || from_image_bytes(&image, &limits, &cfg.features)).await??;
+        let fit = self.cfg.max_feature_bytes.saturating_sub(Features::encoded_len(0)) / Features::encoded_len(1).max(1);
+        f.truncate(fit);
+        Ok(f)
+    }
+
+    /// [`super::check`] on a worker.
+    pub async fn check(
+        &self,
+        query: Result<Arc<Features>, String>,
+        candidates: Vec<(Match, Option<Features>)>,
+        checked: usize,
+        camera: Option<Intrinsics>,
+        params: VerifyParams,
+    ) -> Result<Vec<LoopMatch>, String> {
+        self.run(move || {
+            let query = query.as_deref().map_err(String::as_str);
+            super::check(query, candidates, checked, camera.as_ref(), &params)
+        })
+        .await
+    }
+}

@@ -1,0 +1,146 @@
+//! Geometric verification on real frames from ../shared/data.
+//! Datasets: slambook2 ch11 desk frames (TUM RGB-D), EuRoC MAV frames via Kimera-VIO's tests.
+
+mod common;
+use common::*;
+use loopd::model::preprocess::ImageLimits;
+use std::path::{Path, PathBuf};
+
+use loopd::verify::features::{from_image_bytes, FeatureParams, Features};
+use loopd::verify::geometric::{verify, Intrinsics, Matcher, VerifyParams};
+use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
+
+fn shared() -> Option<PathBuf> {
+    Some(data("slambook2-ch11/1.png").parent()?.parent()?.to_path_buf())
+}
+
+fn feats(p: &Path) -> Features {
+    let b = std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    from_image_bytes(&b, &ImageLimits::default(), &FeatureParams::default())
+        .unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+fn euroc_k() -> Intrinsics {
+    Intrinsics {
+        fx: 458.654,
+        fy: 457.296,
+        cx: 367.215,
+        cy: 248.375,
+        dist: Some([-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0]),
+    }
+}
+
+/// Ground-truth T_query_candidate rotation of cam0 from World-T-body poses (q = w,x,y,z) and T_BS.
+fn gt_rotation(query: [f64; 4], cand: [f64; 4]) -> UnitQuaternion<f64> {
+    let q = |a: [f64; 4]| UnitQuaternion::from_quaternion(Quaternion::new(a[0], a[1], a[2], a[3]));
+    let r_bc = UnitQuaternion::from_matrix(&Matrix3::new(
+        0.0148655429818,
+        -0.999880929698,
+        0.00414029679422, //
+        0.999557249008,
+        0.0149672133247,
+        0.025715529948, //
+        -0.0257744366974,
+        0.00375618835797,
+        0.999660727178,
+    ));
+    r_bc.inverse() * q(query).inverse() * q(cand) * r_bc
+}
+
+const POSES: [[f64; 4]; 4] = [
+    [0.338337, 0.608466, -0.535476, 0.478082],
+    [0.478634, 0.415595, -0.700197, 0.328505],
+    [0.3394, -0.672895, -0.492724, -0.435018],
+    [0.39266, -0.590667, -0.58023, -0.400326],
+];
+const POSITIONS: [[f64; 3]; 4] = [
+    [1.573832, 2.023348, 1.738755],
+    [1.872115, 1.786064, 1.586159],
+    [-0.662997, -0.495046, 1.347300],
+    [-0.345638, -0.501712, 1.320441],
+];
+
+#[test]
+fn desk_loop_verifies_and_non_loops_do_not() {
+    let d = shared().expect("../shared/data");
+    let p = VerifyParams::default();
+    let desk: Vec<Features> = (1..=10).map(|i| feats(&d.join(format!("slambook2-ch11/{i}.png")))).collect();
+    let v = verify(&desk[0], &desk[9], None, &p);
+    assert!(v.verified && v.inliers >= 3 * p.min_inliers, "1-10: {v:?}");
+    for j in 1..9 {
+        let v = verify(&desk[0], &desk[j], None, &p);
+        assert!(!v.verified, "1-{}: {v:?}", j + 1);
+    }
+    for other in [
+        "photos/dog.jpg",
+        "photos/kite.jpg",
+        "photos/tokyo_db.png",
+        "corridor/ref/0000050.jpg",
+        "euroc-lcd/left_img_2.png",
+    ] {
+        let o = feats(&d.join(other));
+        for q in [&desk[0], &desk[9]] {
+            let v = verify(q, &o, None, &p);
+            assert!(!v.verified, "{other}: {v:?}");
+            assert!(v.reason.is_some());
+        }
+    }
+}
+
+#[test]
+fn euroc_loops_verify_with_correct_relative_rotation() {
+    let d = shared().expect("../shared/data");
+    let e: Vec<Features> = (0..4).map(|i| feats(&d.join(format!("euroc-lcd/left_img_{i}.png")))).collect();
+    let k = euroc_k();
+    let p = VerifyParams::default();
+    for (q, c) in [(1usize, 0usize), (3, 2)] {
+        let v = verify(&e[q], &e[c], Some(&k), &p);
+        assert!(v.verified, "q{q} c{c}: {v:?}");
+        let pose = v.relative_pose.clone().expect("pose for a verified loop with intrinsics");
+        let gt = gt_rotation(POSES[q], POSES[c]);
+        let err = (pose.rotation().inverse() * gt).angle().to_degrees();
+        // Kimera-VIO's own mono test tolerance on these frames is 0.05 rad (2.9 deg).
+        assert!(err < 4.0, "q{q} c{c}: rotation error {err:.2} deg");
+        // Wrong convention (inverse) would be off by twice the rotation angle (31..75 deg).
+        let err_inv = (pose.rotation() * gt).angle().to_degrees();
+        assert!(err_inv > 20.0, "convention check: {err_inv:.2}");
+        // Translation direction: coarse (monocular, short baseline) but must point the right way.
+        let r_bc = Matrix3::new(
+            0.0148655429818,
+            -0.999880929698,
+            0.00414029679422, //
+            0.999557249008,
+            0.0149672133247,
+            0.025715529948, //
+            -0.0257744366974,
+            0.00375618835797,
+            0.999660727178,
+        );
+        let t_bc = Vector3::new(-0.0216401454975, -0.064676986768, 0.00981073058949);
+        let rot = |a: [f64; 4]| {
+            *UnitQuaternion::from_quaternion(Quaternion::new(a[0], a[1], a[2], a[3])).to_rotation_matrix().matrix()
+        };
+        let pos = |i: usize| Vector3::new(POSITIONS[i][0], POSITIONS[i][1], POSITIONS[i][2]) + rot(POSES[i]) * t_bc;
+        let r_wcq = rot(POSES[q]) * r_bc;
+        let t_gt = (r_wcq.transpose() * (pos(c) - pos(q))).normalize();
+        let t_est = Vector3::new(pose.tx, pose.ty, pose.tz);
+        let terr = t_est.dot(&t_gt).clamp(-1.0, 1.0).acos().to_degrees();
+        assert!(terr < 35.0, "q{q} c{c}: translation direction error {terr:.1} deg");
+    }
+    for (q, c) in [(2usize, 0usize), (3, 0), (2, 1), (3, 1)] {
+        for intr in [None, Some(&k)] {
+            let v = verify(&e[q], &e[c], intr, &p);
+            assert!(!v.verified && v.relative_pose.is_none(), "q{q} c{c}: {v:?}");
+        }
+    }
+}
+
+#[test]
+fn opencv_and_scan_matchers_agree() {
+    let d = shared().expect("../shared/data");
+    let a = feats(&d.join("slambook2-ch11/1.png"));
+    let b = feats(&d.join("slambook2-ch11/10.png"));
+    let scan = verify(&a, &b, None, &VerifyParams { matcher: Matcher::Scan, ..VerifyParams::default() });
+    let ocv = verify(&a, &b, None, &VerifyParams { matcher: Matcher::OpenCv, ..VerifyParams::default() });
+    assert_eq!(scan, ocv);
+}
