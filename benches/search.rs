@@ -9,7 +9,7 @@
 use indicatif::{ProgressBar, ProgressStyle};
 use loopd::store::index::SessionIndex;
 use loopd::store::query::LoopQuery;
-use loopd::store::Storage;
+use loopd::store::{NewSession, Storage};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -195,12 +195,14 @@ fn store_bench() -> anyhow::Result<()> {
         store
             .create_session(
                 Some("bench".into()),
-                "bench".into(),
-                dim,
-                "bench".into(),
-                Storage::F16,
-                LoopQuery::default(),
-                None,
+                NewSession {
+                    name: "bench".into(),
+                    dim,
+                    descriptor_id: "bench".into(),
+                    storage: Storage::F16,
+                    default_query: LoopQuery::default(),
+                    camera: None,
+                },
             )
             .await?;
         let bar = ProgressBar::new(n as u64).with_style(

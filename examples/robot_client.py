@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""A robot streaming keyframes to loopd over gRPC and printing its loop candidates.
+"""A robot streaming keyframes to loopd over gRPC and printing its loop candidates; verified loops
+(ORB + RANSAC on the server) are marked, with the relative pose when the session has a camera.
 
 The client code is generated from proto/loopd/v1/loopd.proto at start (grpcio-tools), so it
 always matches the server's API.
@@ -46,6 +47,9 @@ def main():
     ap.add_argument("--scope", choices=["all", "same", "other"], default="all")
     ap.add_argument("--exclude-last", type=int, default=10, help="skip this robot's own last N frames")
     ap.add_argument("--fps", type=float, default=0, help="pace the stream (0: as fast as possible)")
+    ap.add_argument("--camera", metavar="FX,FY,CX,CY[,K1,K2,P1,P2,K3]",
+                    help="intrinsics for a new session (--create): verified loops then carry a relative pose")
+    ap.add_argument("--no-verify", action="store_true", help="descriptor ranking only")
     ap.add_argument("--require-matches-from", metavar="ROBOT",
                     help="exit 1 unless most frames' best match is a frame of ROBOT (for CI)")
     a = ap.parse_args()
@@ -56,7 +60,11 @@ def main():
     stub = rpc.LoopdStub(channel)
     if a.create:
         try:
-            stub.CreateSession(pb.CreateSessionRequest(id=a.session, name=a.session))
+            camera = None
+            if a.camera:
+                v = [float(x) for x in a.camera.split(",")]
+                camera = pb.Camera(fx=v[0], fy=v[1], cx=v[2], cy=v[3], distortion=v[4:])
+            stub.CreateSession(pb.CreateSessionRequest(id=a.session, name=a.session, camera=camera))
         except grpc.RpcError as e:
             if e.code() != grpc.StatusCode.ALREADY_EXISTS:
                 raise
@@ -73,9 +81,24 @@ def main():
             yield pb.AddFrameRequest(
                 session_id=a.session, robot_id=a.robot, timestamp=time.time(), image=path.read_bytes(),
                 metadata_json='{"file": "%s"}' % path.name,
-                options=pb.QueryOptions(k=a.k, scope=scope, exclude_last_frames=a.exclude_last))
+                options=pb.QueryOptions(k=a.k, scope=scope, exclude_last_frames=a.exclude_last,
+                                        verify=not a.no_verify))
 
-    from_robot = failed = 0
+    def describe(m):
+        text = f"{m.robot_id}/{m.frame_id} ({m.score:.3f})"
+        if not m.HasField("verification"):
+            return text
+        v = m.verification
+        if not v.verified:
+            return text + " unverified"
+        text += f" VERIFIED {v.inliers} inliers"
+        if v.HasField("relative_pose"):
+            p = v.relative_pose
+            text += (f" q=({p.qx:.3f},{p.qy:.3f},{p.qz:.3f},{p.qw:.3f})"
+                     f" t=({p.tx:.2f},{p.ty:.2f},{p.tz:.2f})")
+        return text
+
+    from_robot = failed = verified = 0
     for path, answer in zip(files, stub.StreamFrames(frames())):
         if answer.error:
             failed += 1
@@ -86,9 +109,10 @@ def main():
             continue
         best = answer.matches[0]
         from_robot += best.robot_id == a.require_matches_from
-        cands = ", ".join(f"{m.robot_id}/{m.frame_id} ({m.score:.3f})" for m in answer.matches)
+        verified += best.verification.verified
+        cands = ", ".join(describe(m) for m in answer.matches)
         print(f"{path.name}: frame {answer.frame_id}, candidates {cands}")
-    print(f"{len(files)} frames streamed, {failed} failed")
+    print(f"{len(files)} frames streamed, {failed} failed, {verified} verified loops")
     if failed:
         sys.exit(1)
     if a.require_matches_from and from_robot * 2 < len(files):

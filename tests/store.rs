@@ -5,7 +5,7 @@ use loopd::model::network::Variant;
 use loopd::store::query::{LoopQuery, Match, Pose, Scope};
 use loopd::store::record::FrameHeader;
 use loopd::store::Storage;
-use loopd::store::{NewFrame, Store, StoreError};
+use loopd::store::{NewFrame, NewSession, Store, StoreError};
 use std::sync::OnceLock;
 
 /// Corridor `query/` and `ref/` descriptors (ImageNet backbone, 224x224 input), embedded once.
@@ -68,7 +68,17 @@ fn frame(id: Option<u64>, robot: &str, t: f64, d: &[f32]) -> NewFrame {
 async fn two_robot_session(store: &Store, id: &str, storage: Storage) {
     let (query, reference) = corridor();
     store
-        .create_session(Some(id.into()), "corridor".into(), 2048, "test".into(), storage, LoopQuery::default(), None)
+        .create_session(
+            Some(id.into()),
+            NewSession {
+                name: "corridor".into(),
+                dim: 2048,
+                descriptor_id: "test".into(),
+                storage,
+                default_query: LoopQuery::default(),
+                camera: None,
+            },
+        )
         .await
         .unwrap();
     let refs: Vec<NewFrame> =
@@ -172,7 +182,17 @@ async fn exclusion_window_skips_the_robots_own_recent_frames() {
     let store = Store::open(dir.path()).unwrap();
     let (query, _) = corridor();
     store
-        .create_session(Some("w".into()), "w".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
+        .create_session(
+            Some("w".into()),
+            NewSession {
+                name: "w".into(),
+                dim: 2048,
+                descriptor_id: "t".into(),
+                storage: Storage::F16,
+                default_query: LoopQuery::default(),
+                camera: None,
+            },
+        )
         .await
         .unwrap();
     // One robot driving the corridor: frame i at time 0.5 * i.
@@ -241,7 +261,17 @@ async fn concurrent_writers_lose_nothing() {
     {
         let store = std::sync::Arc::new(Store::open(dir.path()).unwrap());
         store
-            .create_session(Some("c".into()), "c".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
+            .create_session(
+                Some("c".into()),
+                NewSession {
+                    name: "c".into(),
+                    dim: 2048,
+                    descriptor_id: "t".into(),
+                    storage: Storage::F16,
+                    default_query: LoopQuery::default(),
+                    camera: None,
+                },
+            )
             .await
             .unwrap();
         let (query, reference) = corridor();
@@ -281,22 +311,44 @@ async fn bad_writes_get_clear_errors_and_change_nothing() {
     let store = Store::open(dir.path()).unwrap();
     let (query, _) = corridor();
     store
-        .create_session(Some("b".into()), "b".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
+        .create_session(
+            Some("b".into()),
+            NewSession {
+                name: "b".into(),
+                dim: 2048,
+                descriptor_id: "t".into(),
+                storage: Storage::F16,
+                default_query: LoopQuery::default(),
+                camera: None,
+            },
+        )
         .await
         .unwrap();
     let again = store
-        .create_session(Some("b".into()), "b".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
+        .create_session(
+            Some("b".into()),
+            NewSession {
+                name: "b".into(),
+                dim: 2048,
+                descriptor_id: "t".into(),
+                storage: Storage::F16,
+                default_query: LoopQuery::default(),
+                camera: None,
+            },
+        )
         .await;
     assert_eq!(again, Err(StoreError::SessionExists("b".into())));
     let bad_id = store
         .create_session(
             Some("no spaces/".into()),
-            "x".into(),
-            2048,
-            "t".into(),
-            Storage::F16,
-            LoopQuery::default(),
-            None,
+            NewSession {
+                name: "x".into(),
+                dim: 2048,
+                descriptor_id: "t".into(),
+                storage: Storage::F16,
+                default_query: LoopQuery::default(),
+                camera: None,
+            },
         )
         .await;
     assert!(matches!(bad_id, Err(StoreError::InvalidArgument(_))));
@@ -452,7 +504,17 @@ async fn a_dropped_write_is_never_a_ghost() {
     {
         let store = Store::open(dir.path()).unwrap();
         store
-            .create_session(Some("g".into()), "g".into(), 2048, "t".into(), Storage::F16, LoopQuery::default(), None)
+            .create_session(
+                Some("g".into()),
+                NewSession {
+                    name: "g".into(),
+                    dim: 2048,
+                    descriptor_id: "t".into(),
+                    storage: Storage::F16,
+                    default_query: LoopQuery::default(),
+                    camera: None,
+                },
+            )
             .await
             .unwrap();
         let s = store.session("g").unwrap();

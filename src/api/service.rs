@@ -6,7 +6,7 @@ use crate::engine::Engine;
 use crate::model::network::{Variant, DESCRIPTOR_DIM};
 use crate::store::query::{LoopQuery, Pose, Scope, MAX_K};
 use crate::store::record::{Camera, FrameHeader};
-use crate::store::{NewFrame, Session, SessionInfo, Storage, Store, MAX_CLIENT_FRAME_ID};
+use crate::store::{NewFrame, NewSession, Session, SessionInfo, Storage, Store, MAX_CLIENT_FRAME_ID};
 use crate::verify::features::Features;
 use crate::verify::geometric::{Intrinsics, VerifyParams};
 use crate::verify::pool::{Verifier, VerifyConfig};
@@ -212,12 +212,14 @@ impl LoopService {
             .store
             .create_session(
                 req.id.filter(|s| !s.is_empty()),
-                req.name,
-                DESCRIPTOR_DIM as usize,
-                descriptor_id,
-                req.storage,
-                defaults,
-                req.camera,
+                NewSession {
+                    name: req.name,
+                    dim: DESCRIPTOR_DIM as usize,
+                    descriptor_id,
+                    storage: req.storage,
+                    default_query: defaults,
+                    camera: req.camera,
+                },
             )
             .await?;
         Ok(self.store.session(&meta.id)?.info())

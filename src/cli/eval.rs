@@ -74,9 +74,9 @@ pub enum VerifyMode {
 fn parse_intrinsics(s: &str) -> Result<Intrinsics, String> {
     let v: Vec<f64> =
         s.split(',').map(|x| x.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| e.to_string())?;
-    let k = match v.as_slice() {
-        &[fx, fy, cx, cy] => Intrinsics { fx, fy, cx, cy, dist: None },
-        &[fx, fy, cx, cy, k1, k2, p1, p2, k3] => Intrinsics { fx, fy, cx, cy, dist: Some([k1, k2, p1, p2, k3]) },
+    let k = match v[..] {
+        [fx, fy, cx, cy] => Intrinsics { fx, fy, cx, cy, dist: None },
+        [fx, fy, cx, cy, k1, k2, p1, p2, k3] => Intrinsics { fx, fy, cx, cy, dist: Some([k1, k2, p1, p2, k3]) },
         _ => return Err(format!("expected 4 or 9 numbers, got {}", v.len())),
     };
     k.validate()?;
@@ -108,7 +108,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     }
     let Some(sequence) = a.sequence.as_deref() else { anyhow::bail!("--sequence or --server is required") };
     let model = a.model.load()?;
-    let verify = (a.verify == VerifyMode::Geometric).then(|| VerifyOptions {
+    let verify = (a.verify == VerifyMode::Geometric).then_some(VerifyOptions {
         geometric: true,
         candidates: a.verify_candidates,
         min_inliers: a.min_inliers,

@@ -154,6 +154,9 @@ pub struct EvalOutput {
     pub query_frames: usize,
     pub tolerance: usize,
     pub exclude: usize,
+    /// Each query's best candidate after verification: [frame, score] (score as the decision rule
+    /// ranks it: cosine, or 1 + inliers when verified), null when it had none.
+    pub best: Vec<Option<(usize, f32)>>,
     #[serde(flatten)]
     pub report: Report,
 }
@@ -237,6 +240,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
             .collect(),
     };
     let report = evaluate(&results, &gt, spec.tolerance);
+    let best = results.iter().map(|r| r.best).collect();
     let out = EvalOutput {
         descriptor_id: engine.info().variant_id(setup.variant).to_string(),
         variant: setup.variant.name().to_string(),
@@ -250,6 +254,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         query_frames: nq,
         tolerance: spec.tolerance,
         exclude: spec.exclude,
+        best,
         report,
     };
     if let Some(dir) = spec.out {

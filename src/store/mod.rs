@@ -62,6 +62,18 @@ pub struct NewFrame {
     pub features: Option<Vec<u8>>,
 }
 
+/// A session to create: everything of its metadata but the id and the creation time.
+#[derive(Clone, Debug)]
+pub struct NewSession {
+    pub name: String,
+    pub dim: usize,
+    /// The descriptor space of what it will hold.
+    pub descriptor_id: String,
+    pub storage: Storage,
+    pub default_query: LoopQuery,
+    pub camera: Option<record::Camera>,
+}
+
 /// What a session holds, for listings.
 #[derive(Clone, Debug, Serialize)]
 pub struct SessionInfo {
@@ -192,16 +204,9 @@ impl Store {
         })
     }
 
-    pub async fn create_session(
-        &self,
-        id: Option<String>,
-        name: String,
-        dim: usize,
-        descriptor_id: String,
-        storage: Storage,
-        default_query: LoopQuery,
-        camera: Option<record::Camera>,
-    ) -> Result<SessionMeta, StoreError> {
+    /// Creates a session; `id` None: the store picks one.
+    pub async fn create_session(&self, id: Option<String>, new: NewSession) -> Result<SessionMeta, StoreError> {
+        let NewSession { name, dim, descriptor_id, storage, default_query, camera } = new;
         if !(1..=65536).contains(&dim) {
             return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
         }
