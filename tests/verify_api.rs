@@ -233,3 +233,87 @@ async fn bad_verification_input_gets_clear_answers() {
     assert_eq!(info["frames"], 2);
     server.shutdown().await.unwrap();
 }
+
+/// Sequence verification through the server (two robots on the Corridor, the visitor's frames
+/// checked by the frames that led up to them) gives `loopd eval --verify sequence`'s best match
+/// for every query frame.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sequence_verification_agrees_with_eval_on_the_corridor() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path()).await;
+    let mut grpc = LoopdClient::connect(format!("http://{}", server.grpc_addr)).await.unwrap();
+    grpc.create_session(pb::CreateSessionRequest {
+        id: "corridor".into(),
+        storage: pb::Storage::F32 as i32,
+        ..Default::default()
+    })
+    .await
+    .unwrap();
+    let options = pb::QueryOptions {
+        k: Some(1),
+        scope: pb::Scope::OtherRobots as i32,
+        verify: Some(false),
+        sequence: Some(true),
+        sequence_length: Some(10),
+        ..Default::default()
+    };
+    let stream = |robot: &'static str, dir: &'static str| {
+        let mut grpc = grpc.clone();
+        async move {
+            let frames: Vec<pb::AddFrameRequest> = (0..111)
+                .map(|i| pb::AddFrameRequest {
+                    session_id: "corridor".into(),
+                    robot_id: robot.into(),
+                    timestamp: Some(i as f64),
+                    content: Some(pb::add_frame_request::Content::Image(
+                        image(&format!("corridor/{dir}/{i:07}.jpg")).into(),
+                    )),
+                    options: Some(options),
+                    ..Default::default()
+                })
+                .collect();
+            let mut answers = grpc.stream_frames(tokio_stream::iter(frames)).await.unwrap().into_inner();
+            let mut out = Vec::new();
+            while let Some(a) = answers.message().await.unwrap() {
+                assert_eq!(a.error, "");
+                out.push(a);
+            }
+            out
+        }
+    };
+    let mapper = stream("mapper", "ref").await;
+    let visitor = stream("visitor", "query").await;
+    let position: std::collections::HashMap<u64, usize> =
+        mapper.iter().enumerate().map(|(i, a)| (a.frame_id, i)).collect();
+    let gt = data("corridor/gt.csv");
+    let out = tokio::task::spawn_blocking(move || {
+        loopd_bin()
+            .args(["eval", "--sequence", data("corridor/ref").to_str().unwrap()])
+            .args(["--query-sequence", data("corridor/query").to_str().unwrap(), "--gt", gt.to_str().unwrap()])
+            .args(["--verify", "sequence", "--sequence-length", "10", "--json", "--cache-dir"])
+            .arg(tempfile::tempdir().unwrap().keep())
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let best = report["best"].as_array().unwrap();
+    let mut same = 0;
+    for (i, a) in visitor.iter().enumerate() {
+        let m = &a.matches[0];
+        let s = m.sequence.as_ref().expect("sequence checked");
+        // The history grows up to L; a candidate near the start of its trajectory has less.
+        assert!((1..=(i + 1).min(10) as u32).contains(&s.length), "query {i}: {s:?}");
+        let e = best[i].as_array().unwrap();
+        same += (position[&m.frame_id] as u64 == e[0].as_u64().unwrap()) as usize;
+        if position[&m.frame_id] as u64 == e[0].as_u64().unwrap() {
+            assert!((s.margin as f64 - e[1].as_f64().unwrap()).abs() < 1e-3, "query {i}: {s:?} vs {e:?}");
+        }
+    }
+    // The same code on the same descriptors: the same best match (f32 sums may break exact ties
+    // differently, so allow one in a hundred).
+    assert!(same >= 110, "server and eval agree on {same}/111 best matches");
+    server.shutdown().await.unwrap();
+}

@@ -49,6 +49,9 @@ fn overrides(o: Option<pb::QueryOptions>) -> Result<QueryOverrides, ApiError> {
         verify: o.verify,
         verify_candidates: o.verify_candidates.map(|k| k as usize),
         min_inliers: o.min_inliers.map(|n| n as usize),
+        sequence: o.sequence,
+        sequence_length: o.sequence_length.map(|n| n as usize),
+        min_sequence_margin: o.min_sequence_margin,
     })
 }
 
@@ -104,13 +107,19 @@ fn session_to_pb(i: SessionInfo) -> pb::Session {
 
 fn matches_to_pb(m: Vec<LoopMatch>) -> Vec<pb::Match> {
     m.into_iter()
-        .map(|LoopMatch { m, verification }| pb::Match {
+        .map(|LoopMatch { m, verification, sequence }| pb::Match {
             frame_id: m.frame_id,
             score: m.score,
             robot_id: m.robot_id,
             timestamp: m.timestamp,
             pose: from_pose(m.pose),
             verification: verification.map(verification_to_pb),
+            sequence: sequence.map(|s| pb::SequenceCheck {
+                score: s.score,
+                margin: s.margin,
+                length: s.length as u32,
+                verified: s.verified,
+            }),
         })
         .collect()
 }

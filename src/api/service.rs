@@ -10,7 +10,9 @@ use crate::store::{NewFrame, NewSession, Session, SessionInfo, Storage, Store, M
 use crate::verify::features::Features;
 use crate::verify::geometric::{Intrinsics, VerifyParams};
 use crate::verify::pool::{Verifier, VerifyConfig};
+use crate::verify::sequence::{self, Place};
 pub use crate::verify::LoopMatch;
+use crate::verify::SequenceInputs;
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -21,6 +23,14 @@ pub struct LoopService {
     pub store: Arc<Store>,
     pub jobs: Arc<Jobs>,
     pub verifier: Verifier,
+}
+
+/// Where a query's past comes from for sequence verification.
+enum History {
+    /// A live frame of this robot (not stored yet): the robot's newest stored frames, then it.
+    Live(Option<String>),
+    /// A stored frame: its own trajectory up to it.
+    Stored(u64),
 }
 
 /// What a query brings to geometric verification: its features, or why it has none.
@@ -58,6 +68,12 @@ pub struct QueryOverrides {
     pub verify_candidates: Option<usize>,
     /// Inliers needed for a verified loop.
     pub min_inliers: Option<usize>,
+    /// Sequence verification on or off.
+    pub sequence: Option<bool>,
+    /// Frames compared along the trajectories (L).
+    pub sequence_length: Option<usize>,
+    /// Margin for a sequence-verified loop.
+    pub min_sequence_margin: Option<f32>,
 }
 
 impl QueryOverrides {
@@ -92,6 +108,15 @@ impl QueryOverrides {
         }
         if let Some(v) = self.min_inliers {
             q.verify.min_inliers = v;
+        }
+        if let Some(v) = self.sequence {
+            q.verify.sequence = v;
+        }
+        if let Some(v) = self.sequence_length {
+            q.verify.sequence_length = v;
+        }
+        if let Some(v) = self.min_sequence_margin {
+            q.verify.min_sequence_margin = v;
         }
         q
     }
@@ -313,36 +338,78 @@ impl LoopService {
     }
 
     /// Ranked candidates: the store's best descriptor matches, the first K of them checked
-    /// geometrically when the query asks for it, then ordered by the one decision rule.
+    /// geometrically and all of them by sequence when the query asks for it, then ordered by the
+    /// one decision rule. Also the query's best matches by descriptor: its sequence votes.
     async fn search(
         &self,
         s: &Arc<Session>,
         descriptor: Vec<f32>,
         features: &QueryFeatures,
+        history: History,
         q: &LoopQuery,
-    ) -> Result<Vec<LoopMatch>, ApiError> {
-        if !q.verify.geometric {
-            let matches = self.store.query(s, descriptor, q).await?;
-            return Ok(matches.into_iter().map(|m| LoopMatch { m, verification: None }).collect());
+    ) -> Result<(Vec<LoopMatch>, Vec<u64>), ApiError> {
+        let v = &q.verify;
+        let pool = [
+            q.k,
+            sequence::VOTES,
+            if v.geometric { v.candidates } else { 0 },
+            if v.sequence { sequence::POOL } else { 0 },
+        ];
+        let wide = LoopQuery { k: pool.into_iter().max().unwrap_or(q.k).min(MAX_K), ..q.clone() };
+        let query_descriptor = v.sequence.then(|| descriptor.clone());
+        let mut matches = self.store.query(s, descriptor, &wide).await?;
+        let votes = matches.iter().take(sequence::VOTES).map(|m| m.frame_id).collect();
+        if !v.geometric && !v.sequence {
+            matches.truncate(q.k);
+            let plain = matches.into_iter().map(|m| LoopMatch { m, verification: None, sequence: None }).collect();
+            return Ok((plain, votes));
         }
-        let wide = LoopQuery { k: q.k.max(q.verify.candidates).min(MAX_K), ..q.clone() };
-        let matches = self.store.query(s, descriptor, &wide).await?;
-        let checked = q.verify.candidates.min(matches.len());
-        let query = match features {
+        if let Some(d) = &query_descriptor {
+            // Where the robot's past says it is now, beside what looks most alike now.
+            let stored = match &history {
+                History::Stored(id) => Some(*id),
+                History::Live(_) => None,
+            };
+            let have: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
+            let mut normalized = d.clone();
+            crate::store::normalize(&mut normalized)?;
+            matches.extend(s.voted(&normalized, q, stored, v.sequence_length.saturating_sub(1), &have));
+        }
+        let checked = if v.geometric { v.candidates.min(matches.len()) } else { 0 };
+        let query = v.geometric.then(|| match features {
             QueryFeatures::Some(f) => Ok(f.clone()),
             QueryFeatures::None(why) => Err(why.clone()),
-        };
+        });
+        let seq = query_descriptor.map(|query_descriptor| {
+            let ids: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
+            let l = v.sequence_length;
+            let (history, places, trails) = match &history {
+                History::Stored(id) => {
+                    let (places, trails, _) = s.trails(&ids, l, None);
+                    (s.trails(&[*id], l, None).1.pop().unwrap_or_default(), places, trails)
+                }
+                History::Live(robot) => {
+                    let (places, trails, mut tail) = s.trails(&ids, l, robot.as_deref());
+                    tail.drain(..tail.len().saturating_sub(l - 1));
+                    tail.push(query_descriptor);
+                    (tail, places, trails)
+                }
+            };
+            let places = places.into_iter().map(|(robot, position)| Place { robot, position }).collect();
+            SequenceInputs { history, trails, places, min_margin: v.min_sequence_margin }
+        });
         let mut candidates = Vec::with_capacity(matches.len());
         for (i, m) in matches.into_iter().enumerate() {
-            let stored = if i < checked && query.is_ok() { s.features(m.frame_id)? } else { None };
+            let wanted = i < checked && matches!(query, Some(Ok(_)));
+            let stored = if wanted { s.features(m.frame_id)? } else { None };
             candidates.push((m, stored.and_then(|b| Features::decode(&b).ok())));
         }
         let camera = s.meta.camera.as_ref().map(intrinsics);
-        let params = VerifyParams { min_inliers: q.verify.min_inliers, ..Default::default() };
+        let params = VerifyParams { min_inliers: v.min_inliers, ..Default::default() };
         let mut out =
-            self.verifier.check(query, candidates, checked, camera, params).await.map_err(ApiError::Internal)?;
+            self.verifier.check(query, candidates, checked, camera, params, seq).await.map_err(ApiError::Internal)?;
         out.truncate(q.k);
-        Ok(out)
+        Ok((out, votes))
     }
 
     pub async fn query(
@@ -370,11 +437,12 @@ impl LoopService {
                 };
                 let d = s.descriptor(id)?;
                 let q = LoopQuery { exclude_frame: Some(id), ..q };
-                self.search(&s, d, &features, &q).await
+                Ok(self.search(&s, d, &features, History::Stored(id), &q).await?.0)
             }
             QueryTarget::Content(c) => {
                 let p = self.prepare(&s, c, q.verify.geometric).await?;
-                self.search(&s, p.descriptor, &p.features, &q).await
+                let history = History::Live(q.robot_id.clone());
+                Ok(self.search(&s, p.descriptor, &p.features, history, &q).await?.0)
             }
         }
     }
@@ -393,13 +461,16 @@ impl LoopService {
         q.validate().map_err(ApiError::InvalidArgument)?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
         let prepared = self.prepare(&s, content, q.verify.geometric || self.keeps_features()).await?;
-        let matches = self.search(&s, prepared.descriptor.clone(), &prepared.features, &q).await?;
+        let history = History::Live(Some(f.robot_id.clone()));
+        let (matches, votes) = self.search(&s, prepared.descriptor.clone(), &prepared.features, history, &q).await?;
         let prepared = if self.keeps_features() {
             prepared
         } else {
             Prepared { features: QueryFeatures::None(String::new()), ..prepared }
         };
         let id = self.store_frame(&s, f.into_new_frame(t, prepared)).await?;
+        // Its best matches by descriptor: the candidates it votes for in later sequence checks.
+        s.set_votes(id, votes);
         Ok((id, matches))
     }
 

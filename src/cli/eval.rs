@@ -48,7 +48,8 @@ pub struct EvalArgs {
     /// Only images whose file name contains this (e.g. "left_" for one camera of a stereo folder).
     #[arg(long)]
     pub filter: Option<String>,
-    /// Check each query's best candidates as the server does: none, or geometric (ORB + RANSAC).
+    /// Check each query's best candidates as the server does: none, geometric (ORB + RANSAC),
+    /// sequence (the frames before query and candidate), or all.
     #[arg(long, value_enum, default_value = "none")]
     pub verify: VerifyMode,
     /// Candidates checked per query (K).
@@ -57,6 +58,12 @@ pub struct EvalArgs {
     /// Inliers for a verified loop.
     #[arg(long, default_value_t = 30)]
     pub min_inliers: usize,
+    /// Frames compared along the trajectories in sequence verification (L).
+    #[arg(long, default_value_t = 40)]
+    pub sequence_length: usize,
+    /// Margin over candidates elsewhere for a sequence-verified loop.
+    #[arg(long, default_value_t = 1.0)]
+    pub min_sequence_margin: f32,
     /// Camera intrinsics "fx,fy,cx,cy" or "fx,fy,cx,cy,k1,k2,p1,p2,k3": essential-matrix checks.
     #[arg(long, value_parser = parse_intrinsics)]
     pub intrinsics: Option<Intrinsics>,
@@ -69,6 +76,8 @@ pub struct EvalArgs {
 pub enum VerifyMode {
     None,
     Geometric,
+    Sequence,
+    All,
 }
 
 fn parse_intrinsics(s: &str) -> Result<Intrinsics, String> {
@@ -108,10 +117,13 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     }
     let Some(sequence) = a.sequence.as_deref() else { anyhow::bail!("--sequence or --server is required") };
     let model = a.model.load()?;
-    let verify = (a.verify == VerifyMode::Geometric).then_some(VerifyOptions {
-        geometric: true,
+    let verify = (a.verify != VerifyMode::None).then_some(VerifyOptions {
+        geometric: matches!(a.verify, VerifyMode::Geometric | VerifyMode::All),
         candidates: a.verify_candidates,
         min_inliers: a.min_inliers,
+        sequence: matches!(a.verify, VerifyMode::Sequence | VerifyMode::All),
+        sequence_length: a.sequence_length,
+        min_sequence_margin: a.min_sequence_margin,
     });
     if let Some(v) = &verify {
         let q = crate::store::query::LoopQuery { verify: v.clone(), ..Default::default() };

@@ -14,6 +14,8 @@ use crate::verify::{
     self,
     features::{from_image_bytes, FeatureParams, Features},
     geometric::{Intrinsics, VerifyParams},
+    sequence::Place,
+    SequenceInputs,
 };
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -194,31 +196,71 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
     };
     let results: Vec<QueryResult> = match (&spec.verify, &query_desc) {
         (Some(v), _) => {
-            let ref_features = extract_all(&refs, "reference features")?;
+            let features = |files: &[PathBuf], label: &str| -> Result<Vec<Result<Features, String>>> {
+                if v.geometric {
+                    extract_all(files, label)
+                } else {
+                    Ok(Vec::new())
+                }
+            };
+            let ref_features = features(&refs, "reference features")?;
             let query_features = match &queries {
-                Some(q) => Some(extract_all(q, "query features")?),
+                Some(q) => Some(features(q, "query features")?),
                 None => None,
             };
             let params = VerifyParams { min_inliers: v.min_inliers, ..Default::default() };
+            let pool =
+                [v.candidates, if v.sequence { verify::sequence::POOL } else { 0 }].into_iter().max().unwrap_or(1);
+            let past = query_desc.as_ref().unwrap_or(&ref_desc);
+            // Each frame's own best matches (what a robot got back for it when it was new).
+            let past_top: Vec<Vec<u64>> = (0..nq)
+                .map(|i| match query_of(i) {
+                    Some((q, opts)) => index
+                        .search(q, &LoopQuery { k: verify::sequence::VOTES, ..opts }, threads)
+                        .iter()
+                        .map(|m| m.frame_id)
+                        .collect(),
+                    None => Vec::new(),
+                })
+                .collect();
             (0..nq)
                 .map(|i| {
-                    let Some((q, opts)) = query_of(i) else { return QueryResult { query: i, best: None } };
-                    let qf = query_features.as_ref().unwrap_or(&ref_features)[i].as_ref();
-                    let candidates = index
-                        .search(q, &opts, threads)
+                    let Some((q, mut opts)) = query_of(i) else { return QueryResult { query: i, best: None } };
+                    opts.k = pool;
+                    let mut matches = index.search(q, &opts, threads);
+                    if v.sequence {
+                        // Where the query's past says it is now, beside what looks most alike now.
+                        let past_votes = &past_top[(i + 1).saturating_sub(v.sequence_length)..i];
+                        let have: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
+                        let ids: Vec<u64> = verify::sequence::voted(past_votes, |id, steps| index.advance(id, steps))
+                            .into_iter()
+                            .filter(|id| !have.contains(id))
+                            .collect();
+                        matches.extend(index.score_frames(q, &ids, &opts));
+                    }
+                    let seq = v.sequence.then(|| {
+                        let l = v.sequence_length;
+                        let ids: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
+                        SequenceInputs {
+                            history: past[(i + 1).saturating_sub(l)..=i].to_vec(),
+                            trails: ids.iter().map(|&id| index.trail(id, l)).collect(),
+                            places: ids.iter().map(|&id| Place { robot: 0, position: id as usize }).collect(),
+                            min_margin: v.min_sequence_margin,
+                        }
+                    });
+                    let qf = v
+                        .geometric
+                        .then(|| query_features.as_ref().unwrap_or(&ref_features)[i].as_ref().map_err(String::as_str));
+                    let candidates = matches
                         .into_iter()
                         .map(|m| {
-                            let f = ref_features[m.frame_id as usize].clone().ok();
+                            let f = ref_features.get(m.frame_id as usize).and_then(|f| f.clone().ok());
                             (m, f)
                         })
                         .collect();
-                    let ranked = verify::check(
-                        qf.map_err(String::as_str),
-                        candidates,
-                        v.candidates,
-                        spec.intrinsics.as_ref(),
-                        &params,
-                    );
+                    let checked = if v.geometric { v.candidates } else { 0 };
+                    let ranked =
+                        verify::check(qf, candidates, checked, spec.intrinsics.as_ref(), &params, seq.as_ref());
                     let best = ranked.first().map(|c| (c.m.frame_id as usize, verify::rank_score(c)));
                     QueryResult { query: i, best }
                 })
@@ -244,10 +286,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
     let out = EvalOutput {
         descriptor_id: engine.info().variant_id(setup.variant).to_string(),
         variant: setup.variant.name().to_string(),
-        verify: spec.verify.as_ref().map_or_else(
-            || "none".to_string(),
-            |v| format!("geometric ({} candidates, {} inliers)", v.candidates, v.min_inliers),
-        ),
+        verify: spec.verify.as_ref().map_or_else(|| "none".to_string(), describe_verify),
         sequence: spec.sequence.display().to_string(),
         query_sequence: spec.query_sequence.map(|p| p.display().to_string()),
         frames: refs.len(),
@@ -276,6 +315,18 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         plots::similarity(&dir.join("similarity.png"), &scores, qd.len(), ref_desc.len(), &truth)?;
     }
     Ok(out)
+}
+
+/// The verification setting, for reports.
+fn describe_verify(v: &VerifyOptions) -> String {
+    let mut parts = Vec::new();
+    if v.geometric {
+        parts.push(format!("geometric ({} candidates, {} inliers)", v.candidates, v.min_inliers));
+    }
+    if v.sequence {
+        parts.push(format!("sequence (L {}, margin {})", v.sequence_length, v.min_sequence_margin));
+    }
+    parts.join(" + ")
 }
 
 /// Local features of every file (or why not), extracted as the server extracts them, on all cores.

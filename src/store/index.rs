@@ -18,6 +18,9 @@ pub struct FrameMeta {
     pub robot: u32,
     pub timestamp: f64,
     pub pose: Option<Pose>,
+    /// The best matches this frame's own query found when it was added (sequence verification's
+    /// candidate votes); memory only, empty after a restart.
+    pub votes: Vec<u64>,
 }
 
 pub struct SessionIndex {
@@ -140,7 +143,7 @@ impl SessionIndex {
             Rows::F32(v) => v.extend_from_slice(descriptor),
         }
         let row = self.frames.len();
-        self.frames.push(FrameMeta { frame_id, robot, timestamp, pose });
+        self.frames.push(FrameMeta { frame_id, robot, timestamp, pose, votes: Vec::new() });
         self.by_frame.insert(frame_id, row);
         let ids = &mut self.by_robot[robot as usize];
         match ids.last() {
@@ -150,6 +153,63 @@ impl SessionIndex {
             }
             _ => ids.push(frame_id),
         }
+    }
+
+    /// The frame's robot and its position in that robot's trajectory (frames in id order).
+    pub fn place(&self, frame_id: u64) -> Option<(u32, usize)> {
+        let robot = self.frames[*self.by_frame.get(&frame_id)?].robot;
+        let ids = &self.by_robot[robot as usize];
+        Some((robot, ids.partition_point(|&id| id < frame_id)))
+    }
+
+    /// Descriptors of the robot's frames up to and including `frame_id`, at most `n`, oldest first.
+    pub fn trail(&self, frame_id: u64, n: usize) -> Vec<Vec<f32>> {
+        let Some((robot, at)) = self.place(frame_id) else { return Vec::new() };
+        let ids = &self.by_robot[robot as usize][..=at];
+        ids[ids.len().saturating_sub(n)..].iter().filter_map(|&id| self.descriptor(id)).collect()
+    }
+
+    /// Records the best matches of the query a frame was added with.
+    pub fn set_votes(&mut self, frame_id: u64, votes: Vec<u64>) {
+        if let Some(&row) = self.by_frame.get(&frame_id) {
+            self.frames[row].votes = votes;
+        }
+    }
+
+    /// The frame `steps` positions after `frame_id` on its robot's trajectory.
+    pub fn advance(&self, frame_id: u64, steps: usize) -> Option<u64> {
+        let (robot, at) = self.place(frame_id)?;
+        self.by_robot[robot as usize].get(at + steps).copied()
+    }
+
+    /// The votes of a robot's newest `n` frames (or of the `n` frames before `before` on its
+    /// trajectory), oldest first.
+    pub fn votes(&self, robot_id: Option<&str>, before: Option<u64>, n: usize) -> Vec<Vec<u64>> {
+        let ids: &[u64] = match (before.and_then(|id| self.place(id)), robot_id.and_then(|r| self.robot_ids.get(r))) {
+            (Some((robot, at)), _) => &self.by_robot[robot as usize][..at],
+            (None, Some(&r)) => &self.by_robot[r as usize],
+            (None, None) => &[],
+        };
+        ids[ids.len().saturating_sub(n)..].iter().map(|id| self.frames[self.by_frame[id]].votes.clone()).collect()
+    }
+
+    /// These frames as matches of `q` under the query's filters (unknown or filtered ids left out).
+    pub fn score_frames(&self, q: &[f32], ids: &[u64], opts: &LoopQuery) -> Vec<Match> {
+        let filter = Filter::new(self, opts);
+        ids.iter()
+            .filter_map(|id| {
+                let row = *self.by_frame.get(id)?;
+                let score = self.host_dot(q, row);
+                (filter.allows(row) && score >= opts.min_score).then(|| self.to_match(score, row))
+            })
+            .collect()
+    }
+
+    /// Descriptors of a robot's newest `n` frames, oldest first (none for an unknown robot).
+    pub fn robot_tail(&self, robot_id: &str, n: usize) -> Vec<Vec<f32>> {
+        let Some(&r) = self.robot_ids.get(robot_id) else { return Vec::new() };
+        let ids = &self.by_robot[r as usize];
+        ids[ids.len().saturating_sub(n)..].iter().filter_map(|&id| self.descriptor(id)).collect()
     }
 
     /// The stored descriptor of a frame, as f32.

@@ -416,6 +416,41 @@ impl Session {
         d.ok_or_else(|| StoreError::FrameNotFound(self.meta.id.clone(), frame_id))
     }
 
+    /// What sequence verification needs of the map: for each candidate, its place (robot,
+    /// position in its trajectory) and the descriptors of its last `n` frames up to it; and the
+    /// `history` robot's newest `n` stored frames (oldest first).
+    #[allow(clippy::type_complexity)]
+    pub fn trails(
+        &self,
+        candidates: &[u64],
+        n: usize,
+        history: Option<&str>,
+    ) -> (Vec<(u32, usize)>, Vec<Vec<Vec<f32>>>, Vec<Vec<f32>>) {
+        let index = self.index.read();
+        let places = candidates.iter().map(|&id| index.place(id).unwrap_or((u32::MAX, 0))).collect();
+        let trails = candidates.iter().map(|&id| index.trail(id, n)).collect();
+        let tail = history.map_or_else(Vec::new, |r| index.robot_tail(r, n));
+        (places, trails, tail)
+    }
+
+    /// Candidates sequence verification adds: the frames the past votes for (see
+    /// `verify::sequence::voted`), scored against `query` under the query's filters. The past is
+    /// the robot's newest `n` frames, or the `n` frames before `stored`.
+    pub fn voted(&self, query: &[f32], q: &LoopQuery, stored: Option<u64>, n: usize, skip: &[u64]) -> Vec<Match> {
+        let index = self.index.read();
+        let votes = index.votes(q.robot_id.as_deref(), stored, n);
+        let ids: Vec<u64> = crate::verify::sequence::voted(&votes, |id, steps| index.advance(id, steps))
+            .into_iter()
+            .filter(|id| !skip.contains(id) && Some(*id) != stored)
+            .collect();
+        index.score_frames(query, &ids, q)
+    }
+
+    /// Records the best matches of the query a frame was added with.
+    pub fn set_votes(&self, frame_id: u64, votes: Vec<u64>) {
+        self.index.write().set_votes(frame_id, votes);
+    }
+
     /// Takes a frame that was never acknowledged back off disk.
     fn remove(&self, frame_id: u64) -> Result<(), StoreError> {
         self.tree.remove(frame_key(frame_id))?;

@@ -52,7 +52,16 @@ pub struct VerifyOptions {
     pub candidates: usize,
     /// Geometric inliers needed for a verified loop.
     pub min_inliers: usize,
+    /// Score candidates by the frames that led up to them (sequence verification).
+    pub sequence: bool,
+    /// Frames compared along the trajectories (L).
+    pub sequence_length: usize,
+    /// Margin over candidates elsewhere on the map for a sequence-verified loop.
+    pub min_sequence_margin: f32,
 }
+
+/// Longest trajectory stretch sequence verification compares.
+pub const MAX_SEQUENCE_LENGTH: usize = 200;
 
 /// Most candidates one query may have checked (each costs a few milliseconds of CPU).
 pub const MAX_CANDIDATES: usize = 50;
@@ -61,7 +70,14 @@ impl Default for VerifyOptions {
     fn default() -> Self {
         // docs/verification.md: true desk and EuRoC loops have 91+ inliers at 1,000 features,
         // non-loops at most 15.
-        Self { geometric: true, candidates: 5, min_inliers: 30 }
+        Self {
+            geometric: true,
+            candidates: 5,
+            min_inliers: 30,
+            sequence: false,
+            sequence_length: 10,
+            min_sequence_margin: 0.05,
+        }
     }
 }
 
@@ -114,6 +130,12 @@ impl LoopQuery {
         }
         if !(8..=10_000).contains(&v.min_inliers) {
             return Err(format!("min_inliers = {} is out of range 8..=10000", v.min_inliers));
+        }
+        if !(1..=MAX_SEQUENCE_LENGTH).contains(&v.sequence_length) {
+            return Err(format!("sequence_length = {} is out of range 1..={MAX_SEQUENCE_LENGTH}", v.sequence_length));
+        }
+        if !v.min_sequence_margin.is_finite() {
+            return Err("min_sequence_margin must be a finite number".into());
         }
         Ok(())
     }

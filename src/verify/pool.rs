@@ -2,7 +2,7 @@
 //! request executor nor on the model thread.
 use super::features::{from_image_bytes, FeatureParams, Features};
 use super::geometric::{Intrinsics, VerifyParams};
-use super::LoopMatch;
+use super::{LoopMatch, SequenceInputs};
 use crate::model::preprocess::ImageLimits;
 use crate::store::query::Match;
 use std::sync::Arc;
@@ -66,15 +66,16 @@ impl Verifier {
     /// [`super::check`] on a worker.
     pub async fn check(
         &self,
-        query: Result<Arc<Features>, String>,
+        query: Option<Result<Arc<Features>, String>>,
         candidates: Vec<(Match, Option<Features>)>,
         checked: usize,
         camera: Option<Intrinsics>,
         params: VerifyParams,
+        seq: Option<SequenceInputs>,
     ) -> Result<Vec<LoopMatch>, String> {
         self.run(move || {
-            let query = query.as_deref().map_err(String::as_str);
-            super::check(query, candidates, checked, camera.as_ref(), &params)
+            let query = query.as_ref().map(|q| q.as_deref().map_err(String::as_str));
+            super::check(query, candidates, checked, camera.as_ref(), &params, seq.as_ref())
         })
         .await
     }

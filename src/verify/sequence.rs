@@ -1,0 +1,172 @@
+//! Sequence (temporal) verification: a candidate is scored by the frames that led up to it. The
+//! querying robot's last L frames (the query last) are compared with the L frames that led up to
+//! the candidate in its own robot's trajectory, pair by pair along the diagonal (causal: only
+//! the past), and the candidate must stand out from candidates elsewhere on the map. Cost:
+//! O(K·L) dot products per query, never a scan of the map per history frame.
+use serde::Serialize;
+
+/// Best matches a frame keeps as its votes for later sequence checks.
+pub const VOTES: usize = 5;
+
+/// Candidates fetched by descriptor for sequence verification (besides the voted ones), so that
+/// candidates elsewhere on the map are there to measure the uniqueness margin against.
+pub const POOL: usize = 20;
+
+/// The outcome for one candidate.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SequenceCheck {
+    /// Mean cosine along the diagonal.
+    pub score: f32,
+    /// `score` minus the best score of the candidates more than `window` frames away in the
+    /// trajectory (0 when there is none to compare with).
+    pub margin: f32,
+    /// Frame pairs compared (shorter than L while a trajectory is young).
+    pub length: usize,
+    /// `margin` reached the query's `min_sequence_margin`.
+    pub verified: bool,
+}
+
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Mean cosine of `history` and `trail` (unit rows, oldest first) aligned at their newest ends,
+/// and the number of pairs; None when either is empty.
+pub fn diagonal(history: &[Vec<f32>], trail: &[Vec<f32>]) -> Option<(f32, usize)> {
+    let n = history.len().min(trail.len());
+    if n == 0 {
+        return None;
+    }
+    let sum: f32 = history.iter().rev().zip(trail.iter().rev()).take(n).map(|(h, t)| dot(h, t)).sum();
+    Some((sum / n as f32, n))
+}
+
+/// Candidates the query's past votes for: each earlier frame's own best matches (`past_votes`,
+/// oldest first, the frame just before the query last), moved forward along their trajectory by
+/// how far back that frame is (`advance(id, steps)`). A place the robot passed L frames ago is
+/// where it would be now if it is retracing it.
+pub fn voted(past_votes: &[Vec<u64>], advance: impl Fn(u64, usize) -> Option<u64>) -> Vec<u64> {
+    let mut out = Vec::new();
+    for (back, votes) in past_votes.iter().rev().enumerate() {
+        for &id in votes {
+            if let Some(now) = advance(id, back + 1) {
+                if !out.contains(&now) {
+                    out.push(now);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// A candidate's place for the uniqueness test: its robot and its position in that robot's
+/// trajectory.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Place {
+    pub robot: u32,
+    pub position: usize,
+}
+
+/// Checks every candidate: `trails[i]` is candidate i's trajectory up to it (oldest first),
+/// `places[i]` where it is. Candidates within `window` positions of each other on one robot's
+/// trajectory are one place and do not compete.
+pub fn check(
+    history: &[Vec<f32>],
+    trails: &[Vec<Vec<f32>>],
+    places: &[Place],
+    window: usize,
+    min_margin: f32,
+) -> Vec<Option<SequenceCheck>> {
+    let scored = normalized_scores(history, trails);
+    scored
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let (score, length) = (*s)?;
+            let rival = scored
+                .iter()
+                .enumerate()
+                .filter(|&(j, _)| {
+                    let (a, b) = (places[i], places[j]);
+                    a.robot != b.robot || a.position.abs_diff(b.position) > window
+                })
+                .filter_map(|(_, s)| s.map(|(s, _)| s))
+                .fold(None, |m: Option<f32>, s| Some(m.map_or(s, |m| m.max(s))));
+            let margin = rival.map_or(0.0, |r| score - r);
+            Some(SequenceCheck { score, margin, length, verified: rival.is_some() && margin >= min_margin })
+        })
+        .collect()
+}
+
+/// Each candidate's mean along the diagonal of similarities normalised per history frame: a
+/// history frame's similarities to the candidates' aligned frames are z-scored across the
+/// candidates (a frame that looks like everything says little), then averaged along each
+/// candidate's diagonal. With fewer than three candidates at a step the raw cosine is used.
+fn normalized_scores(history: &[Vec<f32>], trails: &[Vec<Vec<f32>>]) -> Vec<Option<(f32, usize)>> {
+    if !NORMALIZE {
+        return trails.iter().map(|t| diagonal(history, t)).collect();
+    }
+    let steps = history.len();
+    // sims[c][j]: candidate c's frame j steps back against the history frame j steps back.
+    let sims: Vec<Vec<Option<f32>>> = trails
+        .iter()
+        .map(|t| {
+            (0..steps)
+                .map(|j| Some(dot(history.get(steps.checked_sub(1 + j)?)?, t.get(t.len().checked_sub(1 + j)?)?)))
+                .collect()
+        })
+        .collect();
+    let stats: Vec<(f32, f32)> = (0..steps)
+        .map(|j| {
+            let v: Vec<f32> = sims.iter().filter_map(|s| s[j]).collect();
+            if v.len() < 3 {
+                return (0.0, 1.0);
+            }
+            let mean = v.iter().sum::<f32>() / v.len() as f32;
+            let var = v.iter().map(|x| (x - mean) * (x - mean)).sum::<f32>() / v.len() as f32;
+            (mean, var.sqrt().max(1e-6))
+        })
+        .collect();
+    sims.iter()
+        .map(|s| {
+            let z: Vec<f32> = s.iter().zip(&stats).filter_map(|(x, (m, sd))| x.map(|x| (x - m) / sd)).collect();
+            (!z.is_empty()).then(|| (z.iter().sum::<f32>() / z.len() as f32, z.len()))
+        })
+        .collect()
+}
+
+const NORMALIZE: bool = true;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit(v: &[f32]) -> Vec<f32> {
+        let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        v.iter().map(|x| x / n).collect()
+    }
+
+    #[test]
+    fn the_candidate_whose_past_matches_wins_by_a_margin() {
+        let a = unit(&[1.0, 0.0, 0.0]);
+        let b = unit(&[0.0, 1.0, 0.0]);
+        let c = unit(&[0.0, 0.0, 1.0]);
+        // The query's past: a, b, then the query c.
+        let history = vec![a.clone(), b.clone(), c.clone()];
+        // Candidate 0 has the same past; candidate 1 looks the same now but came from elsewhere.
+        let trails = vec![vec![a.clone(), b.clone(), c.clone()], vec![b.clone(), a.clone(), c.clone()]];
+        let places = [Place { robot: 0, position: 10 }, Place { robot: 0, position: 50 }];
+        let out = check(&history, &trails, &places, 5, 0.2);
+        let (good, bad) = (out[0].clone().unwrap(), out[1].clone().unwrap());
+        assert!((good.score - 1.0).abs() < 1e-6 && (bad.score - 1.0 / 3.0).abs() < 1e-6);
+        assert!((good.margin - 2.0 / 3.0).abs() < 1e-6 && good.verified);
+        assert!(!bad.verified && bad.margin < 0.0);
+        // Neighbours on the same trajectory do not compete: no rival, no verdict.
+        let near = [Place { robot: 0, position: 10 }, Place { robot: 0, position: 12 }];
+        assert!(check(&history, &trails, &near, 5, 0.2).iter().all(|c| !c.as_ref().unwrap().verified));
+        // A young trajectory compares what it has.
+        let short = check(&history[2..], &trails, &places, 5, 0.2);
+        assert_eq!(short[0].as_ref().unwrap().length, 1);
+        assert!(check(&[], &trails, &places, 5, 0.2).iter().all(Option::is_none));
+    }
+}
