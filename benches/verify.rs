@@ -196,6 +196,7 @@ fn server(seconds: u64) -> anyhow::Result<()> {
             max_jobs: 1,
             search: Default::default(),
             verify: Default::default(),
+            shutdown_grace: std::time::Duration::from_secs(10),
         };
         let server = RunningServer::start(cfg, model).await?;
         let addr = format!("http://{}", server.grpc_addr);

@@ -34,6 +34,7 @@ async fn server() -> &'static Server {
                     max_jobs: 2,
                     search: Default::default(),
                     verify: Default::default(),
+                    shutdown_grace: std::time::Duration::from_secs(10),
                 };
                 let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
                 tx.send(Server {
@@ -401,6 +402,7 @@ async fn server_at(dir: &std::path::Path, size: u32) -> RunningServer {
         max_jobs: 1,
         search: Default::default(),
         verify: Default::default(),
+        shutdown_grace: std::time::Duration::from_secs(10),
     };
     RunningServer::start(cfg, imagenet_model_at(size, size)).await.unwrap()
 }

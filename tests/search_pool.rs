@@ -31,6 +31,7 @@ fn health_checks_answer_while_large_searches_run() {
             max_jobs: 1,
             search: Default::default(),
             verify: Default::default(),
+            shutdown_grace: std::time::Duration::from_secs(10),
         };
         let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
         let svc = &server.service;

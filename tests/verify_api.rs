@@ -19,6 +19,7 @@ async fn start(dir: &std::path::Path) -> RunningServer {
         max_jobs: 1,
         search: Default::default(),
         verify: Default::default(),
+        shutdown_grace: std::time::Duration::from_secs(10),
     };
     RunningServer::start(cfg, imagenet_model()).await.unwrap()
 }

@@ -34,7 +34,9 @@ impl From<EngineError> for ApiError {
     fn from(e: EngineError) -> Self {
         let msg = e.to_string();
         match e {
-            EngineError::Image(ImageError::TooManyBytes { .. }) => ApiError::TooLarge(msg),
+            EngineError::Image(ImageError::TooManyBytes { .. } | ImageError::TooMuchMemory { .. }) => {
+                ApiError::TooLarge(msg)
+            }
             EngineError::Image(_) => ApiError::InvalidArgument(msg),
             EngineError::Overloaded(_) => ApiError::Overloaded(msg),
             EngineError::Stopped => ApiError::Unavailable(msg),
@@ -87,7 +89,9 @@ impl ApiError {
     pub fn grpc_status(&self) -> tonic::Status {
         let msg = self.message();
         match self {
-            ApiError::InvalidArgument(_) | ApiError::TooLarge(_) => tonic::Status::invalid_argument(msg),
+            ApiError::InvalidArgument(_) => tonic::Status::invalid_argument(msg),
+            // What tonic itself answers for a message over its size limit: one code for "too large".
+            ApiError::TooLarge(_) => tonic::Status::out_of_range(msg),
             ApiError::NotFound(_) => tonic::Status::not_found(msg),
             ApiError::AlreadyExists(_) => tonic::Status::already_exists(msg),
             ApiError::Overloaded(_) => tonic::Status::resource_exhausted(msg),

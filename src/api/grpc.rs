@@ -14,6 +14,8 @@ pub use pb::loopd_server::LoopdServer;
 
 pub struct GrpcApi {
     pub service: LoopService,
+    /// Turns true when the server shuts down: open frame streams end.
+    pub shutdown: tokio::sync::watch::Receiver<bool>,
 }
 
 fn to_pose(p: Option<pb::Pose>) -> Option<Pose> {
@@ -230,10 +232,24 @@ impl pb::loopd_server::Loopd for GrpcApi {
     ) -> Result<Response<FrameStream>, Status> {
         let mut inbound = req.into_inner();
         let service = self.service.clone();
+        let mut shutdown = self.shutdown.clone();
         let (tx, rx) = tokio::sync::mpsc::channel(16);
         tokio::spawn(async move {
             // In order, one frame at a time: each answer refers to the map as it was just before.
-            while let Some(next) = inbound.next().await {
+            loop {
+                // A frame in hand is finished (stored, answered) before the stream ends.
+                let next = tokio::select! {
+                    biased;
+                    // The watch guard is dropped inside: it must not live across the send below.
+                    _ = async { shutdown.wait_for(|s| *s).await.is_ok() } => {
+                        let _ = tx.send(Err(Status::unavailable("server shutting down: reconnect and resend unacknowledged frames"))).await;
+                        break;
+                    }
+                    next = inbound.next() => match next {
+                        Some(next) => next,
+                        None => break,
+                    },
+                };
                 let reply = match next {
                     Err(status) => {
                         tracing::debug!(%status, "client stream ended with an error");

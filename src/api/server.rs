@@ -9,9 +9,11 @@ use crate::pb;
 use crate::store::{SearchConfig, Store};
 use crate::verify::pool::VerifyConfig;
 use anyhow::{Context, Result};
+use axum::serve::ListenerExt;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
+use tonic::transport::server::TcpIncoming;
 
 #[derive(Clone, Debug)]
 pub struct ServerConfig {
@@ -27,6 +29,9 @@ pub struct ServerConfig {
     pub search: SearchConfig,
     /// Local features kept per frame and the workers that extract and check them.
     pub verify: VerifyConfig,
+    /// How long shutdown waits for open connections after streams were told to end; then they
+    /// are cut (acknowledged frames are durable either way).
+    pub shutdown_grace: std::time::Duration,
 }
 
 pub struct RunningServer {
@@ -34,6 +39,7 @@ pub struct RunningServer {
     pub http_addr: SocketAddr,
     pub service: LoopService,
     shutdown: tokio::sync::watch::Sender<bool>,
+    grace: std::time::Duration,
     tasks: Vec<tokio::task::JoinHandle<Result<()>>>,
 }
 
@@ -59,6 +65,12 @@ impl RunningServer {
         let state = Arc::new(AppState { service: service.clone() });
         let app = router(state, cfg.max_body_bytes);
         let mut http_rx = rx.clone();
+        // No Nagle: small answers leave at once instead of waiting for the client's delayed ACK.
+        let http = http.tap_io(|tcp| {
+            if let Err(e) = tcp.set_nodelay(true) {
+                tracing::debug!(error = %e, "TCP_NODELAY not set");
+            }
+        });
         let http_task = tokio::spawn(async move {
             axum::serve(http, app)
                 .with_graceful_shutdown(async move {
@@ -74,7 +86,7 @@ impl RunningServer {
             .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
             .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
             .build_v1()?;
-        let api = LoopdServer::new(GrpcApi { service: service.clone() })
+        let api = LoopdServer::new(GrpcApi { service: service.clone(), shutdown: rx.clone() })
             .max_decoding_message_size(cfg.limits.max_bytes + 64 * 1024)
             .max_encoding_message_size(64 << 20);
         let mut grpc_rx = rx;
@@ -83,22 +95,40 @@ impl RunningServer {
                 .add_service(health_service)
                 .add_service(reflection)
                 .add_service(api)
-                .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc), async move {
+                .serve_with_incoming_shutdown(TcpIncoming::from(grpc).with_nodelay(Some(true)), async move {
                     let _ = grpc_rx.wait_for(|s| *s).await;
                 })
                 .await?;
             Ok(())
         });
         tracing::info!(%http_addr, %grpc_addr, data_dir = %cfg.data_dir.display(), "loopd serving");
-        Ok(Self { grpc_addr, http_addr, service, shutdown, tasks: vec![http_task, grpc_task] })
+        Ok(Self {
+            grpc_addr,
+            http_addr,
+            service,
+            shutdown,
+            grace: cfg.shutdown_grace,
+            tasks: vec![http_task, grpc_task],
+        })
     }
 
     /// Stops accepting, lets in-flight requests finish (their writes are acknowledged only
-    /// once durable), then flushes the store.
+    /// once durable), ends open frame streams with UNAVAILABLE after the frame in hand, waits at
+    /// most the grace time for connections to close, then flushes the store.
     pub async fn shutdown(self) -> Result<()> {
         let _ = self.shutdown.send(true);
-        for t in self.tasks {
-            t.await??;
+        let deadline = tokio::time::Instant::now() + self.grace;
+        for mut t in self.tasks {
+            match tokio::time::timeout_at(deadline, &mut t).await {
+                Ok(done) => done??,
+                Err(_) => {
+                    tracing::warn!(
+                        grace_s = self.grace.as_secs_f64(),
+                        "connections still open after the grace time: cut"
+                    );
+                    t.abort();
+                }
+            }
         }
         self.service.store.flush()?;
         Ok(())

@@ -65,6 +65,13 @@ pub struct ServeArgs {
     /// cannot be verified).
     #[arg(long, env = "LOOPD_MAX_FEATURE_BYTES", default_value_t = 64 << 10)]
     pub max_feature_bytes: usize,
+    /// Largest decoded image buffer (width x height x bytes per pixel); decoding memory is at most
+    /// this per decode worker.
+    #[arg(long, env = "LOOPD_MAX_DECODE_BYTES", default_value_t = 192 << 20)]
+    pub max_decode_bytes: u64,
+    /// Seconds shutdown waits for open connections once streams were told to end.
+    #[arg(long, env = "LOOPD_SHUTDOWN_GRACE_SECS", default_value_t = 10.0)]
+    pub shutdown_grace_secs: f64,
     /// Feature extractions and candidate checks running at once (default: number of cores).
     #[arg(long, env = "LOOPD_VERIFY_WORKERS")]
     pub verify_workers: Option<usize>,
@@ -102,11 +109,13 @@ impl ServeArgs {
             limits: ImageLimits {
                 max_bytes: self.max_image_bytes,
                 max_pixels: self.max_image_pixels,
+                max_decode_bytes: self.max_decode_bytes,
                 ..Default::default()
             },
             max_body_bytes: self.max_body_bytes.max(self.max_image_bytes + (1 << 20)),
             max_jobs: self.max_jobs,
             search: SearchConfig::default(),
+            shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs.clamp(0.0, 3600.0)),
             verify: {
                 let defaults = VerifyConfig::default();
                 VerifyConfig {

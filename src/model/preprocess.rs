@@ -16,11 +16,15 @@ pub struct ImageLimits {
     pub max_pixels: u64,
     /// Smallest side accepted: a few pixels hold no place information.
     pub min_side: u32,
+    /// Largest decoded pixel buffer (width x height x channels x bytes per channel): a small
+    /// 16-bit PNG can decode to hundreds of MB. Memory for decoding is at most this per decode
+    /// worker (plus its 8-bit RGB copy).
+    pub max_decode_bytes: u64,
 }
 
 impl Default for ImageLimits {
     fn default() -> Self {
-        Self { max_bytes: 16 << 20, max_pixels: 40_000_000, min_side: 16 }
+        Self { max_bytes: 16 << 20, max_pixels: 40_000_000, min_side: 16, max_decode_bytes: 192 << 20 }
     }
 }
 
@@ -36,6 +40,8 @@ pub enum ImageError {
     TooManyPixels { width: u32, height: u32, max: u64 },
     #[error("image is {width}x{height}; each side must be at least {min} pixels")]
     TooSmall { width: u32, height: u32, min: u32 },
+    #[error("image is {width}x{height} with {bytes_per_pixel} bytes per pixel: decoding needs {} bytes, above the limit of {max} bytes", *width as u64 * *height as u64 * *bytes_per_pixel as u64)]
+    TooMuchMemory { width: u32, height: u32, bytes_per_pixel: u8, max: u64 },
     #[error("cannot decode image: {0}")]
     Corrupt(String),
 }
@@ -55,12 +61,17 @@ pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<RgbImage, ImageError
     if probe_format.is_none() {
         return Err(ImageError::UnknownFormat);
     }
-    let (width, height) = probe.into_dimensions().map_err(|e| ImageError::Corrupt(e.to_string()))?;
+    let decoder = probe.into_decoder().map_err(|e| ImageError::Corrupt(e.to_string()))?;
+    let (width, height) = image::ImageDecoder::dimensions(&decoder);
+    let bytes_per_pixel = image::ImageDecoder::color_type(&decoder).bytes_per_pixel();
     if width as u64 * height as u64 > limits.max_pixels {
         return Err(ImageError::TooManyPixels { width, height, max: limits.max_pixels });
     }
     if width < limits.min_side || height < limits.min_side {
         return Err(ImageError::TooSmall { width, height, min: limits.min_side });
+    }
+    if width as u64 * height as u64 * bytes_per_pixel as u64 > limits.max_decode_bytes {
+        return Err(ImageError::TooMuchMemory { width, height, bytes_per_pixel, max: limits.max_decode_bytes });
     }
     if probe_format == Some(image::ImageFormat::Jpeg) && !jpeg_is_complete(bytes) {
         // Decoders fill a cut-off JPEG with grey and report success; a partial frame is not a place.
@@ -70,7 +81,8 @@ pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<RgbImage, ImageError
     let mut dl = image::Limits::default();
     dl.max_image_width = Some(width);
     dl.max_image_height = Some(height);
-    dl.max_alloc = Some(limits.max_pixels.saturating_mul(16));
+    // The pixel buffer is bounded above; the decoder's own working buffers come on top of it.
+    dl.max_alloc = Some(limits.max_decode_bytes.saturating_mul(2));
     r.limits(dl);
     let img = r.decode().map_err(|e| ImageError::Corrupt(e.to_string()))?;
     Ok(img.to_rgb8())
