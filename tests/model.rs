@@ -172,3 +172,33 @@ fn half_precision_is_refused_on_cpu_with_a_clear_message() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("needs a CUDA device") && !err.contains("panicked"), "{err}");
 }
+
+/// Power-normalised pooling: each value is the square root of average pooling's (the pooled
+/// values are non-negative after ReLU), renormalised; the Tokyo pair stays the closest pair.
+#[test]
+fn square_root_pooling_is_the_root_of_average_pooling() {
+    use loopd::model::config::Pooling;
+    let gap = imagenet_model();
+    let cfg = ModelConfig { pooling: Pooling::GapSqrt, ..ModelConfig::default() };
+    let (sqrt, _) = loopd::model::Model::load(&weights(), cfg, tch::Device::Cpu, DType::F32).unwrap();
+    assert_ne!(gap.descriptor_id(Variant::FULL), sqrt.descriptor_id(Variant::FULL));
+    let inputs = photo_inputs(&gap);
+    let a = rows(&gap.descriptors(&inputs, Variant::FULL).unwrap()).unwrap();
+    let b = rows(&sqrt.descriptors(&inputs, Variant::FULL).unwrap()).unwrap();
+    for (x, y) in a.iter().zip(&b) {
+        let root: Vec<f32> = x.iter().map(|v| v.max(0.0).sqrt()).collect();
+        let n = root.iter().map(|v| v * v).sum::<f32>().sqrt();
+        let max_diff = root.iter().zip(y).map(|(r, y)| (r / n - y).abs()).fold(0f32, f32::max);
+        assert!(max_diff < 1e-4, "sqrt pooling differs from the root of average pooling by {max_diff}");
+        assert!((y.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-4);
+    }
+    let cos = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f32>();
+    let (db, q) = (
+        PHOTOS.iter().position(|p| *p == "tokyo_db.png").unwrap(),
+        PHOTOS.iter().position(|p| *p == "tokyo_query.jpg").unwrap(),
+    );
+    let pair = cos(&b[db], &b[q]);
+    for i in (0..PHOTOS.len()).filter(|&i| i != db && i != q) {
+        assert!(pair > cos(&b[db], &b[i]) && pair > cos(&b[q], &b[i]), "{}", PHOTOS[i]);
+    }
+}

@@ -6,7 +6,7 @@ mod images;
 mod serve;
 mod weights;
 
-use crate::model::config::{parse_input_size, ModelConfig, ResizeMode};
+use crate::model::config::{parse_input_size, ModelConfig, Pooling, ResizeMode};
 use crate::model::device::{parse_device, DType};
 use crate::model::Model;
 use anyhow::{Context, Result};
@@ -55,6 +55,10 @@ pub struct ModelArgs {
     /// Network input size: N or WxH.
     #[arg(long, env = "LOOPD_INPUT_SIZE", default_value = "224", value_parser = parse_input_size)]
     pub input_size: (u32, u32),
+    /// How the feature map becomes the descriptor: gap (average) or gap-sqrt (average, then the
+    /// signed square root).
+    #[arg(long, env = "LOOPD_POOLING", value_enum, default_value = "gap")]
+    pub pooling: Pooling,
     /// stretch to the input size, or keep the aspect ratio inside it.
     #[arg(long, env = "LOOPD_RESIZE", value_enum, default_value = "stretch")]
     pub resize: ResizeMode,
@@ -66,6 +70,7 @@ impl ModelArgs {
         cfg.preprocess.width = self.input_size.0;
         cfg.preprocess.height = self.input_size.1;
         cfg.preprocess.resize = self.resize;
+        cfg.pooling = self.pooling;
         cfg
     }
 

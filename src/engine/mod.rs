@@ -122,7 +122,12 @@ impl Engine {
         let info = Arc::new(EngineInfo {
             descriptor_id: model.descriptor_id(Variant::FULL),
             variant_ids: Variant::ALL.iter().map(|&v| (v, model.descriptor_id(v))).collect(),
-            legacy_descriptor_id: model.config.legacy_descriptor_id(Variant::FULL),
+            // Sessions of loopd 0.1 were made with average pooling.
+            legacy_descriptor_id: if model.config.pooling == crate::model::config::Pooling::Gap {
+                model.config.legacy_descriptor_id(Variant::FULL)
+            } else {
+                String::new()
+            },
             preprocess: model.config.preprocess.clone(),
             limits,
             device: device_name(model.device),

@@ -32,9 +32,21 @@ pub enum Normalization {
     Torch,
 }
 
+/// How the final feature map becomes the descriptor (before L2 normalisation).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Pooling {
+    /// Global average pooling (the paper).
+    Gap,
+    /// Global average pooling, then the signed square root of each value ("power
+    /// normalisation"): a few bursty channels no longer dominate the cosine.
+    GapSqrt,
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelConfig {
     pub stride_layout: StrideLayout,
+    pub pooling: Pooling,
     /// Hidden width of the channel attention's fully connected layer is C / reduction.
     pub channel_reduction: i64,
     pub preprocess: Preprocess,
@@ -56,7 +68,12 @@ impl Default for Preprocess {
 
 impl Default for ModelConfig {
     fn default() -> Self {
-        Self { stride_layout: StrideLayout::V1, channel_reduction: 16, preprocess: Preprocess::default() }
+        Self {
+            stride_layout: StrideLayout::V1,
+            pooling: Pooling::Gap,
+            channel_reduction: 16,
+            preprocess: Preprocess::default(),
+        }
     }
 }
 
@@ -72,7 +89,10 @@ impl ModelConfig {
                 Normalization::Caffe => "caffe",
                 Normalization::Torch => "torch",
             },
-            POOLING,
+            match self.pooling {
+                Pooling::Gap => "gap",
+                Pooling::GapSqrt => "gap-sqrt",
+            },
             &weights_sha256[..weights_sha256.len().min(12)]
         )
     }
@@ -97,9 +117,6 @@ impl ModelConfig {
         )
     }
 }
-
-/// How the final feature map becomes a vector (global average pooling, then L2).
-const POOLING: &str = "gap";
 
 /// Parses "224" or "320x240" (width x height).
 pub fn parse_input_size(s: &str) -> Result<(u32, u32), String> {
@@ -137,6 +154,7 @@ mod tests {
         ];
         let changed = [
             ModelConfig { stride_layout: StrideLayout::V15, ..base.clone() },
+            ModelConfig { pooling: Pooling::GapSqrt, ..base.clone() },
             ModelConfig { preprocess: Preprocess { width: 112, ..base.preprocess.clone() }, ..base.clone() },
             ModelConfig { preprocess: Preprocess { height: 112, ..base.preprocess.clone() }, ..base.clone() },
             ModelConfig {

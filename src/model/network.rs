@@ -1,7 +1,7 @@
 //! The descriptor network: backbone, per-stage attention, fusion, pooled unit descriptor.
 use super::attention::StageAttention;
 use super::backbone::{Backbone, STAGE_CHANNELS};
-use super::config::ModelConfig;
+use super::config::{ModelConfig, Pooling};
 use super::fusion::Fusion;
 use tch::{nn, Tensor};
 
@@ -36,6 +36,7 @@ impl Variant {
 
 /// All parameters always exist, whatever the variant, so one weight file serves every ablation.
 pub struct Network {
+    pooling: Pooling,
     backbone: Backbone,
     attention: Vec<StageAttention>,
     fusion: Fusion,
@@ -48,6 +49,7 @@ impl Network {
     pub fn new(root: &nn::Path, cfg: &ModelConfig) -> Self {
         let att = root / "attention";
         Self {
+            pooling: cfg.pooling,
             backbone: Backbone::new(root, cfg.stride_layout),
             attention: STAGE_CHANNELS
                 .iter()
@@ -77,10 +79,14 @@ impl Network {
         }
     }
 
-    /// Global average pooling and L2 normalisation: [N, 2048] unit rows (cosine = dot).
+    /// Global average pooling (and, with `Pooling::GapSqrt`, the signed square root) and L2
+    /// normalisation: [N, 2048] unit rows (cosine = dot).
     pub fn descriptor(&self, x: &Tensor, v: Variant) -> Tensor {
         let pooled = self.feature_map(x, v).mean_dim([2i64, 3].as_slice(), false, None);
-        l2_normalize(&pooled)
+        match self.pooling {
+            Pooling::Gap => l2_normalize(&pooled),
+            Pooling::GapSqrt => l2_normalize(&(pooled.sign() * pooled.abs().sqrt())),
+        }
     }
 
     /// ImageNet class probabilities of the plain backbone ([N, 1000]).
