@@ -187,16 +187,8 @@ fn server(seconds: u64) -> anyhow::Result<()> {
         let weights = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("weights/resnet50-imagenet.safetensors");
         let (model, _) = Model::load(&weights, ModelConfig::default(), tch::Device::Cpu, DType::F32)?;
         let cfg = ServerConfig {
-            grpc_addr: "127.0.0.1:0".parse()?,
-            http_addr: "127.0.0.1:0".parse()?,
-            data_dir: dir.path().to_path_buf(),
             engine: EngineConfig { max_batch: 8, ..Default::default() },
-            limits: ImageLimits::default(),
-            max_body_bytes: 8 << 20,
-            max_jobs: 1,
-            search: Default::default(),
-            verify: Default::default(),
-            shutdown_grace: std::time::Duration::from_secs(10),
+            ..ServerConfig::on_loopback(dir.path().to_path_buf())
         };
         let server = RunningServer::start(cfg, model).await?;
         let addr = format!("http://{}", server.grpc_addr);

@@ -25,16 +25,10 @@ async fn server() -> &'static Server {
             rt.block_on(async move {
                 let dir = tempfile::tempdir().unwrap();
                 let cfg = ServerConfig {
-                    grpc_addr: "127.0.0.1:0".parse().unwrap(),
-                    http_addr: "127.0.0.1:0".parse().unwrap(),
-                    data_dir: dir.path().to_path_buf(),
                     engine: EngineConfig { max_batch: 16, max_delay: Duration::from_millis(5), ..Default::default() },
                     limits: ImageLimits { max_bytes: 2 << 20, ..Default::default() },
-                    max_body_bytes: 8 << 20,
                     max_jobs: 2,
-                    search: Default::default(),
-                    verify: Default::default(),
-                    shutdown_grace: std::time::Duration::from_secs(10),
+                    ..ServerConfig::on_loopback(dir.path().to_path_buf())
                 };
                 let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
                 tx.send(Server {
@@ -393,16 +387,8 @@ async fn offline_sequence_job_finds_the_desk_loop() {
 /// A server on `dir` whose model takes `size`x`size` inputs.
 async fn server_at(dir: &std::path::Path, size: u32) -> RunningServer {
     let cfg = ServerConfig {
-        grpc_addr: "127.0.0.1:0".parse().unwrap(),
-        http_addr: "127.0.0.1:0".parse().unwrap(),
-        data_dir: dir.to_path_buf(),
         engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
-        limits: ImageLimits::default(),
-        max_body_bytes: 8 << 20,
-        max_jobs: 1,
-        search: Default::default(),
-        verify: Default::default(),
-        shutdown_grace: std::time::Duration::from_secs(10),
+        ..ServerConfig::on_loopback(dir.to_path_buf())
     };
     RunningServer::start(cfg, imagenet_model_at(size, size)).await.unwrap()
 }

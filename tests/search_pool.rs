@@ -22,16 +22,8 @@ fn health_checks_answer_while_large_searches_run() {
     let dir = tempfile::tempdir().unwrap();
     let (server, descriptors) = server_rt.block_on(async {
         let cfg = ServerConfig {
-            grpc_addr: "127.0.0.1:0".parse().unwrap(),
-            http_addr: "127.0.0.1:0".parse().unwrap(),
-            data_dir: dir.path().to_path_buf(),
             engine: EngineConfig { max_batch: 8, warm_up: false, ..Default::default() },
-            limits: Default::default(),
-            max_body_bytes: 8 << 20,
-            max_jobs: 1,
-            search: Default::default(),
-            verify: Default::default(),
-            shutdown_grace: std::time::Duration::from_secs(10),
+            ..ServerConfig::on_loopback(dir.path().to_path_buf())
         };
         let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
         let svc = &server.service;

@@ -10,16 +10,8 @@ use serde_json::{json, Value};
 
 async fn start(dir: &std::path::Path) -> RunningServer {
     let cfg = ServerConfig {
-        grpc_addr: "127.0.0.1:0".parse().unwrap(),
-        http_addr: "127.0.0.1:0".parse().unwrap(),
-        data_dir: dir.to_path_buf(),
         engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
-        limits: Default::default(),
-        max_body_bytes: 8 << 20,
-        max_jobs: 1,
-        search: Default::default(),
-        verify: Default::default(),
-        shutdown_grace: std::time::Duration::from_secs(10),
+        ..ServerConfig::on_loopback(dir.to_path_buf())
     };
     RunningServer::start(cfg, imagenet_model()).await.unwrap()
 }

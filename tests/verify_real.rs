@@ -30,10 +30,9 @@ fn euroc_k() -> Intrinsics {
     }
 }
 
-/// Ground-truth T_query_candidate rotation of cam0 from World-T-body poses (q = w,x,y,z) and T_BS.
-fn gt_rotation(query: [f64; 4], cand: [f64; 4]) -> UnitQuaternion<f64> {
-    let q = |a: [f64; 4]| UnitQuaternion::from_quaternion(Quaternion::new(a[0], a[1], a[2], a[3]));
-    let r_bc = UnitQuaternion::from_matrix(&Matrix3::new(
+/// Rotation of EuRoC cam0 in the body (IMU) frame: T_BS of cam0's sensor.yaml.
+fn r_body_cam() -> Matrix3<f64> {
+    Matrix3::new(
         0.0148655429818,
         -0.999880929698,
         0.00414029679422, //
@@ -43,7 +42,13 @@ fn gt_rotation(query: [f64; 4], cand: [f64; 4]) -> UnitQuaternion<f64> {
         -0.0257744366974,
         0.00375618835797,
         0.999660727178,
-    ));
+    )
+}
+
+/// Ground-truth T_query_candidate rotation of cam0 from World-T-body poses (q = w,x,y,z) and T_BS.
+fn gt_rotation(query: [f64; 4], cand: [f64; 4]) -> UnitQuaternion<f64> {
+    let q = |a: [f64; 4]| UnitQuaternion::from_quaternion(Quaternion::new(a[0], a[1], a[2], a[3]));
+    let r_bc = UnitQuaternion::from_matrix(&r_body_cam());
     r_bc.inverse() * q(query).inverse() * q(cand) * r_bc
 }
 
@@ -105,17 +110,7 @@ fn euroc_loops_verify_with_correct_relative_rotation() {
         let err_inv = (pose.rotation() * gt).angle().to_degrees();
         assert!(err_inv > 20.0, "convention check: {err_inv:.2}");
         // Translation direction: coarse (monocular, short baseline) but must point the right way.
-        let r_bc = Matrix3::new(
-            0.0148655429818,
-            -0.999880929698,
-            0.00414029679422, //
-            0.999557249008,
-            0.0149672133247,
-            0.025715529948, //
-            -0.0257744366974,
-            0.00375618835797,
-            0.999660727178,
-        );
+        let r_bc = r_body_cam();
         let t_bc = Vector3::new(-0.0216401454975, -0.064676986768, 0.00981073058949);
         let rot = |a: [f64; 4]| {
             *UnitQuaternion::from_quaternion(Quaternion::new(a[0], a[1], a[2], a[3])).to_rotation_matrix().matrix()

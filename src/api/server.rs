@@ -34,6 +34,26 @@ pub struct ServerConfig {
     pub shutdown_grace: std::time::Duration,
 }
 
+impl ServerConfig {
+    /// Both APIs on free loopback ports over `data_dir`, every other setting at its default:
+    /// what tests and benchmarks start from.
+    pub fn on_loopback(data_dir: PathBuf) -> Self {
+        let loopback = SocketAddr::from(([127, 0, 0, 1], 0));
+        Self {
+            grpc_addr: loopback,
+            http_addr: loopback,
+            data_dir,
+            engine: EngineConfig::default(),
+            limits: ImageLimits::default(),
+            max_body_bytes: 8 << 20,
+            max_jobs: 1,
+            search: SearchConfig::default(),
+            verify: VerifyConfig::default(),
+            shutdown_grace: std::time::Duration::from_secs(10),
+        }
+    }
+}
+
 pub struct RunningServer {
     pub grpc_addr: SocketAddr,
     pub http_addr: SocketAddr,

@@ -30,17 +30,6 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
-/// Mean cosine of `history` and `trail` (unit rows, oldest first) aligned at their newest ends,
-/// and the number of pairs; None when either is empty.
-pub fn diagonal(history: &[Vec<f32>], trail: &[Vec<f32>]) -> Option<(f32, usize)> {
-    let n = history.len().min(trail.len());
-    if n == 0 {
-        return None;
-    }
-    let sum: f32 = history.iter().rev().zip(trail.iter().rev()).take(n).map(|(h, t)| dot(h, t)).sum();
-    Some((sum / n as f32, n))
-}
-
 /// Candidates the query's past votes for: each earlier frame's own best matches (`past_votes`,
 /// oldest first, the frame just before the query last), moved forward along their trajectory by
 /// how far back that frame is (`advance(id, steps)`). A place the robot passed L frames ago is
@@ -103,9 +92,6 @@ pub fn check(
 /// candidates (a frame that looks like everything says little), then averaged along each
 /// candidate's diagonal. With fewer than three candidates at a step the raw cosine is used.
 fn normalized_scores(history: &[Vec<f32>], trails: &[Vec<Vec<f32>>]) -> Vec<Option<(f32, usize)>> {
-    if !NORMALIZE {
-        return trails.iter().map(|t| diagonal(history, t)).collect();
-    }
     let steps = history.len();
     // sims[c][j]: candidate c's frame j steps back against the history frame j steps back.
     let sims: Vec<Vec<Option<f32>>> = trails
@@ -134,8 +120,6 @@ fn normalized_scores(history: &[Vec<f32>], trails: &[Vec<Vec<f32>>]) -> Vec<Opti
         })
         .collect()
 }
-
-const NORMALIZE: bool = true;
 
 #[cfg(test)]
 mod tests {
