@@ -1,7 +1,7 @@
 //! loopd: loop-closure detection as a service.
 //!
 //! Layers, dependencies pointing one way: `api` -> `engine` -> `model`, `store`; `verify` (local
-//! features and geometry) is used by `api` and `eval`.
+//! features and geometry) is used by `api` and `eval`; `train` (heads, whitening) uses `eval`.
 pub mod api;
 pub mod cli;
 pub mod engine;
@@ -10,4 +10,5 @@ pub mod files;
 pub mod model;
 pub mod pb;
 pub mod store;
+pub mod train;
 pub mod verify;

@@ -3,7 +3,7 @@
 use super::error::ApiError;
 use super::jobs::{JobStatus, SequenceRequest};
 use super::service::{Content, CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
-use crate::model::network::{Variant, DESCRIPTOR_DIM};
+use crate::model::network::Variant;
 use crate::store::query::Pose;
 use crate::store::SessionInfo;
 use axum::body::Bytes;
@@ -65,7 +65,7 @@ async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
     let i = e.info();
     Json(Info {
         descriptor_id: i.descriptor_id.clone(),
-        dim: DESCRIPTOR_DIM,
+        dim: i.dim as i64,
         device: i.device.clone(),
         dtype: i.dtype.clone(),
         max_batch: e.config().max_batch,

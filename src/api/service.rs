@@ -3,7 +3,7 @@
 use super::error::ApiError;
 use super::jobs::{JobStatus, Jobs, SequenceRequest};
 use crate::engine::Engine;
-use crate::model::network::{Variant, DESCRIPTOR_DIM};
+use crate::model::network::Variant;
 use crate::store::query::{LoopQuery, Pose, Scope, MAX_K};
 use crate::store::record::{Camera, FrameHeader};
 use crate::store::{NewFrame, NewSession, Session, SessionInfo, Storage, Store, MAX_CLIENT_FRAME_ID};
@@ -239,7 +239,7 @@ impl LoopService {
                 req.id.filter(|s| !s.is_empty()),
                 NewSession {
                     name: req.name,
-                    dim: DESCRIPTOR_DIM as usize,
+                    dim: self.engine.info().dim,
                     descriptor_id,
                     storage: req.storage,
                     default_query: defaults,

@@ -67,6 +67,10 @@ pub struct EvalArgs {
     /// Camera intrinsics "fx,fy,cx,cy" or "fx,fy,cx,cy,k1,k2,p1,p2,k3": essential-matrix checks.
     #[arg(long, value_parser = parse_intrinsics)]
     pub intrinsics: Option<Intrinsics>,
+    /// Only frames START..END (indices in natural name order) of each sequence, ground truth
+    /// windowed to them (e.g. Nordland's validation places 2000..2400).
+    #[arg(long, value_parser = crate::eval::run::parse_range)]
+    pub range: Option<std::ops::Range<usize>>,
     /// Descriptor cache (a rerun with other search settings does not embed again).
     #[arg(long, default_value = ".loopd-cache")]
     pub cache_dir: PathBuf,
@@ -140,6 +144,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         exclude: a.exclude,
         out: a.out.as_deref(),
         filter: a.filter.as_deref(),
+        range: a.range.clone(),
     };
     let variant = a.variant.variant();
     let out = run_eval(model, &spec, &a.model.weights, variant, Some(&a.cache_dir))?;

@@ -4,6 +4,7 @@ mod embed;
 mod eval;
 mod images;
 mod serve;
+mod train;
 mod weights;
 
 use crate::model::config::{parse_input_size, ModelConfig, Pooling, ResizeMode};
@@ -38,7 +39,12 @@ pub enum Command {
     Embed(embed::EmbedArgs),
     /// Recall at 100% precision, PR curve and similarity matrix on a sequence with ground truth.
     Eval(eval::EvalArgs),
+    /// Train the attention/fusion heads (and whitening) on real data; writes a heads file.
+    Train(train::TrainArgs),
 }
+
+/// The heads shipped in the repository (trained on the real data here, see docs/training.md).
+pub const DEFAULT_HEADS: &str = "models/heads.safetensors";
 
 /// Options shared by every command that runs the network.
 #[derive(Args, Clone, Debug)]
@@ -46,6 +52,11 @@ pub struct ModelArgs {
     /// loopd weight file (safetensors), as written by `loopd weights import`.
     #[arg(long, env = "LOOPD_WEIGHTS", default_value = "weights/resnet50-imagenet.safetensors")]
     pub weights: PathBuf,
+    /// Trained heads (attention, fusion, whitening) from `loopd train`, loaded on top of --weights;
+    /// part of the descriptor id. Default: the shipped heads (docs/training.md); "none": the
+    /// identity heads (the plain backbone, and sessions made before heads were shipped).
+    #[arg(long, env = "LOOPD_HEADS", default_value = DEFAULT_HEADS)]
+    pub heads: String,
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, env = "LOOPD_DEVICE", default_value = "auto")]
     pub device: String,
@@ -79,8 +90,18 @@ impl ModelArgs {
         let (model, report) = Model::load(&self.weights, self.config(), device, self.dtype).with_context(|| {
             format!("loading weights {} (run scripts/dev setup to import them)", self.weights.display())
         })?;
+        let mut model = model;
+        if let Some(path) = self.heads_path() {
+            let h = model.load_heads(&path).with_context(|| format!("loading heads {}", path.display()))?;
+            tracing::info!(heads = %path.display(), tensors = h.tensors, whitening = model.dim(), "heads loaded");
+        }
         tracing::debug!(?report, device = ?model.device, "model loaded");
         Ok(model)
+    }
+
+    /// The heads file to load, if any.
+    pub fn heads_path(&self) -> Option<PathBuf> {
+        (self.heads != "none" && !self.heads.is_empty()).then(|| PathBuf::from(&self.heads))
     }
 }
 
@@ -108,5 +129,6 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Classify(a) => classify::run(a),
         Command::Embed(a) => embed::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Train(a) => train::run(a),
     }
 }

@@ -17,10 +17,27 @@ pub enum WeightsCommand {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Content hash (what descriptor ids and heads files name), tensor count and metadata of a
+    /// weight or heads file, as JSON.
+    Info { file: PathBuf },
 }
 
 pub fn run(c: WeightsCommand) -> Result<ExitCode> {
     match c {
+        WeightsCommand::Info { file } => {
+            let f = WeightFile::read(&file)?;
+            let params: i64 = f.tensors.iter().map(|(_, t)| t.numel() as i64).sum();
+            let meta: std::collections::BTreeMap<_, _> = f.metadata.iter().collect();
+            let info = serde_json::json!({
+                "file": file.display().to_string(),
+                "sha256": f.sha256,
+                "tensors": f.tensors.len(),
+                "parameters": params,
+                "metadata": meta,
+            });
+            println!("{}", serde_json::to_string_pretty(&info)?);
+            Ok(ExitCode::SUCCESS)
+        }
         WeightsCommand::Import { tfjs: dir, out } => {
             let imported = tfjs::import(&dir).with_context(|| format!("importing {}", dir.display()))?;
             // Prove the result fits the network exactly before writing it.

@@ -77,6 +77,8 @@ pub struct EngineInfo {
     /// The full network's id as loopd 0.1 named it (before weight hashes): sessions created
     /// then by this same configuration stay usable.
     pub legacy_descriptor_id: String,
+    /// Length of the descriptors (2048, or a whitening's output size).
+    pub dim: usize,
     pub preprocess: Preprocess,
     pub limits: ImageLimits,
     pub device: String,
@@ -123,11 +125,14 @@ impl Engine {
             descriptor_id: model.descriptor_id(Variant::FULL),
             variant_ids: Variant::ALL.iter().map(|&v| (v, model.descriptor_id(v))).collect(),
             // Sessions of loopd 0.1 were made with average pooling.
-            legacy_descriptor_id: if model.config.pooling == crate::model::config::Pooling::Gap {
+            legacy_descriptor_id: if model.config.pooling == crate::model::config::Pooling::Gap
+                && model.heads_sha256.is_none()
+            {
                 model.config.legacy_descriptor_id(Variant::FULL)
             } else {
                 String::new()
             },
+            dim: model.dim() as usize,
             preprocess: model.config.preprocess.clone(),
             limits,
             device: device_name(model.device),

@@ -76,6 +76,19 @@ impl GroundTruth {
         gt
     }
 
+    /// The loops among frames `range` of both sequences, renumbered from 0.
+    pub fn window(&self, range: &std::ops::Range<usize>) -> Self {
+        let mut gt = GroundTruth::default();
+        for (&q, refs) in &self.loops {
+            for &r in refs {
+                if range.contains(&q) && range.contains(&r) {
+                    gt.add(q - range.start, r - range.start);
+                }
+            }
+        }
+        gt
+    }
+
     pub fn load(spec: &str, camera: Option<usize>, frames: usize) -> Result<Self> {
         if spec == "aligned" {
             return Ok(Self::aligned(frames));

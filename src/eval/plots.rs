@@ -65,3 +65,32 @@ pub fn similarity(path: &Path, scores: &[f32], rows: usize, cols: usize, truth: 
     root.present().map_err(err)?;
     Ok(())
 }
+
+/// Named series of (x, y) points as lines (training curves).
+pub fn lines(path: &Path, title: &str, axes: (&str, &str), series: &[(String, Vec<(f64, f64)>)]) -> Result<()> {
+    let pts = series.iter().flat_map(|(_, p)| p.iter());
+    let (x1, y0, y1) =
+        pts.fold((1f64, f64::INFINITY, f64::NEG_INFINITY), |(x1, y0, y1), &(x, y)| (x1.max(x), y0.min(y), y1.max(y)));
+    let (y0, y1) = if y0.is_finite() { (y0.min(0.0), y1.max(y0 + 1e-3) * 1.05) } else { (0.0, 1.0) };
+    let root = BitMapBackend::new(path, (800, 500)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0f64..x1, y0..y1)
+        .map_err(err)?;
+    chart.configure_mesh().x_desc(axes.0).y_desc(axes.1).draw().map_err(err)?;
+    for (i, (name, p)) in series.iter().enumerate() {
+        let color = Palette99::pick(i).to_rgba();
+        chart
+            .draw_series(LineSeries::new(p.clone(), color.stroke_width(2)))
+            .map_err(err)?
+            .label(name.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+    }
+    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(err)?;
+    root.present().map_err(err)?;
+    Ok(())
+}

@@ -20,6 +20,7 @@ use crate::verify::{
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use crate::files::{is_image, natural_key};
@@ -39,6 +40,29 @@ pub fn list_images(dir: &Path, filter: Option<&str>) -> Result<Vec<PathBuf>> {
         bail!("no images in {}", dir.display());
     }
     Ok(files)
+}
+
+/// Image files of a folder, restricted to a range of indices (`None`: all), with their indices.
+pub fn frames_in_range(dir: &Path, filter: Option<&str>, range: Option<&Range<usize>>) -> Result<Vec<PathBuf>> {
+    let all = list_images(dir, filter)?;
+    let Some(r) = range else { return Ok(all) };
+    if r.start >= r.end || r.end > all.len() {
+        bail!("range {}..{} does not fit the {} images of {}", r.start, r.end, all.len(), dir.display());
+    }
+    Ok(all[r.clone()].to_vec())
+}
+
+/// Parses "A..B" (half-open frame indices).
+pub fn parse_range(s: &str) -> Result<Range<usize>, String> {
+    let (a, b) = s.split_once("..").ok_or_else(|| format!("bad range '{s}': expected START..END"))?;
+    let (a, b): (usize, usize) = (
+        a.trim().parse().map_err(|_| format!("bad range start in '{s}'"))?,
+        b.trim().parse().map_err(|_| format!("bad range end in '{s}'"))?,
+    );
+    if a >= b {
+        return Err(format!("empty range '{s}'"));
+    }
+    Ok(a..b)
 }
 
 /// FNV-1a: a cache key that stays the same across builds.
@@ -142,6 +166,9 @@ pub struct EvalSpec<'a> {
     pub exclude: usize,
     pub out: Option<&'a Path>,
     pub filter: Option<&'a str>,
+    /// Only frames with these indices (natural name order) of each sequence; the ground truth
+    /// is windowed to them (e.g. a validation range of places).
+    pub range: Option<std::ops::Range<usize>>,
 }
 
 #[derive(Serialize)]
@@ -156,6 +183,9 @@ pub struct EvalOutput {
     pub query_frames: usize,
     pub tolerance: usize,
     pub exclude: usize,
+    /// Frame range used, if not all.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub range: Option<String>,
     /// Each query's best candidate after verification: [frame, score] (score as the decision rule
     /// ranks it: cosine, or 1 + inliers when verified), null when it had none.
     pub best: Vec<Option<(usize, f32)>>,
@@ -165,15 +195,19 @@ pub struct EvalOutput {
 
 /// Runs one evaluation with an already started engine.
 pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) -> Result<EvalOutput> {
-    let refs = list_images(spec.sequence, spec.filter)?;
-    let queries = spec.query_sequence.map(|q| list_images(q, spec.filter)).transpose()?;
+    let window = |dir: &Path| frames_in_range(dir, spec.filter, spec.range.as_ref());
+    let refs = window(spec.sequence)?;
+    let queries = spec.query_sequence.map(window).transpose()?;
     let ref_desc = embed_files(engine, &refs, setup, "reference")?;
     let query_desc = match &queries {
         Some(q) => Some(embed_files(engine, q, setup, "query")?),
         None => None,
     };
     let nq = queries.as_ref().map_or(refs.len(), Vec::len);
-    let gt = GroundTruth::load(spec.gt, spec.camera, nq.min(refs.len()))?;
+    let gt = match &spec.range {
+        Some(r) => GroundTruth::load(spec.gt, spec.camera, r.start + nq.min(refs.len()))?.window(r),
+        None => GroundTruth::load(spec.gt, spec.camera, nq.min(refs.len()))?,
+    };
     // The store's index and search: the same code that answers robots.
     let dim = ref_desc.first().map_or(0, Vec::len);
     let mut index = SessionIndex::new(dim, Storage::F32);
@@ -293,6 +327,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         query_frames: nq,
         tolerance: spec.tolerance,
         exclude: spec.exclude,
+        range: spec.range.as_ref().map(|r| format!("{}..{}", r.start, r.end)),
         best,
         report,
     };

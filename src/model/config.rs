@@ -81,9 +81,10 @@ impl ModelConfig {
     /// Names the descriptor space: everything that changes a descriptor is in it (weights and
     /// heads by the hash of the file holding them, variant, input size, resize, normalisation,
     /// pooling). Sessions refuse descriptors computed under another id.
-    pub fn descriptor_id(&self, variant: Variant, weights_sha256: &str) -> String {
+    pub fn descriptor_id(&self, variant: Variant, weights_sha256: &str, heads_sha256: Option<&str>) -> String {
+        let heads = heads_sha256.map_or(String::new(), |h| format!("-h{}", &h[..h.len().min(12)]));
         format!(
-            "{}-{}-{}-w{}",
+            "{}-{}-{}-w{}{heads}",
             self.legacy_descriptor_id(variant),
             match self.preprocess.normalization {
                 Normalization::Caffe => "caffe",
@@ -144,10 +145,12 @@ mod tests {
     #[test]
     fn every_descriptor_setting_changes_the_id() {
         let base = ModelConfig::default();
-        let id = |c: &ModelConfig, v: Variant, w: &str| c.descriptor_id(v, w);
+        let id = |c: &ModelConfig, v: Variant, w: &str| c.descriptor_id(v, w, None);
         let reference = id(&base, Variant::FULL, "aaaaaaaaaaaaaaaa");
         let mut variants = vec![
             id(&base, Variant::FULL, "bbbbbbbbbbbbbbbb"),
+            base.descriptor_id(Variant::FULL, "aaaaaaaaaaaaaaaa", Some("cccccccccccccccc")),
+            base.descriptor_id(Variant::FULL, "aaaaaaaaaaaaaaaa", Some("dddddddddddddddd")),
             id(&base, Variant::BACKBONE, "aaaaaaaaaaaaaaaa"),
             id(&base, Variant { attention: true, fusion: false }, "aaaaaaaaaaaaaaaa"),
             id(&base, Variant { attention: false, fusion: true }, "aaaaaaaaaaaaaaaa"),

@@ -4,6 +4,7 @@ pub mod backbone;
 pub mod config;
 pub mod device;
 pub mod fusion;
+pub mod heads;
 pub mod labels;
 pub mod network;
 pub mod preprocess;
@@ -26,6 +27,10 @@ pub struct Model {
     pub dtype: DType,
     /// SHA-256 (hex) of the weight file loaded; "none" for a model built without one.
     pub weights_sha256: String,
+    /// SHA-256 (hex) of the heads file loaded on top (`--heads`), if any.
+    pub heads_sha256: Option<String>,
+    /// Learned whitening from the heads file, applied after pooling.
+    whitening: Option<heads::Whitening>,
     vs: VarStore,
     net: Network,
 }
@@ -36,7 +41,7 @@ impl Model {
         dtype.check(device)?;
         let vs = VarStore::new(Device::Cpu);
         let net = Network::new(&vs.root(), &config);
-        Ok(Self { config, device, dtype, weights_sha256: "none".into(), vs, net })
+        Ok(Self { config, device, dtype, weights_sha256: "none".into(), heads_sha256: None, whitening: None, vs, net })
     }
 
     /// Loads a loopd weight file; its metadata fixes the stride layout and normalisation.
@@ -55,8 +60,44 @@ impl Model {
         Ok((model, report))
     }
 
+    /// Loads a heads file (`loopd train`'s output) on top of the backbone. Its pooling setting,
+    /// if it states one, replaces the configured one (its whitening was fitted after it).
+    pub fn load_heads(&mut self, path: &Path) -> Result<heads::LoadedHeads> {
+        let mut loaded = heads::load_into(&self.vs, path, &self.weights_sha256)?;
+        if let Some(p) = loaded.metadata.get(heads::META_POOLING) {
+            let pooling = serde_json::from_value::<config::Pooling>(p.as_str().into())?;
+            if pooling != self.config.pooling {
+                tracing::warn!(heads = %path.display(), ?pooling, "pooling set by the heads file");
+            }
+            self.set_pooling(pooling);
+        }
+        self.whitening = loaded.whitening.take().map(|w| w.to_device(self.device));
+        self.heads_sha256 = Some(loaded.sha256.clone());
+        Ok(loaded)
+    }
+
+    pub fn set_pooling(&mut self, pooling: config::Pooling) {
+        self.config.pooling = pooling;
+        self.net.pooling = pooling;
+    }
+
+    /// Replaces the whitening (None: plain pooled descriptors).
+    pub fn set_whitening(&mut self, w: Option<heads::Whitening>) {
+        self.whitening = w.map(|w| w.to_device(self.device));
+    }
+
+    pub fn whitening(&self) -> Option<&heads::Whitening> {
+        self.whitening.as_ref()
+    }
+
+    /// Length of the descriptors this model computes.
+    pub fn dim(&self) -> i64 {
+        self.whitening.as_ref().map_or(network::DESCRIPTOR_DIM, heads::Whitening::dim)
+    }
+
     pub fn to(&mut self, device: Device, dtype: DType) -> Result<()> {
         dtype.check(device)?;
+        self.whitening = self.whitening.take().map(|w| w.to_device(device));
         self.vs.set_device(device);
         self.vs.set_kind(dtype.kind());
         self.device = device;
@@ -66,11 +107,16 @@ impl Model {
 
     /// The descriptor space this model's `variant` computes (see `ModelConfig::descriptor_id`).
     pub fn descriptor_id(&self, variant: Variant) -> String {
-        self.config.descriptor_id(variant, &self.weights_sha256)
+        self.config.descriptor_id(variant, &self.weights_sha256, self.heads_sha256.as_deref())
     }
 
     pub fn var_store(&self) -> &VarStore {
         &self.vs
+    }
+
+    /// Pooled unit descriptors of a batch with autograd on (training; no whitening).
+    pub fn forward_train(&self, x: &Tensor, v: Variant) -> Tensor {
+        self.net.descriptor(&channels_last(x), v)
     }
 
     /// Sets every attention/fusion parameter to seeded random values (tests, benchmarks).
@@ -112,7 +158,12 @@ impl Model {
         let x = self.batch(inputs)?;
         let d = tch::no_grad(|| self.net.descriptor(&x, v));
         // Renormalise in f32: half-precision norms are off by ~1e-3.
-        Ok(network::l2_normalize(&d.to_kind(tch::Kind::Float)).to_device(Device::Cpu))
+        let d = network::l2_normalize(&d.to_kind(tch::Kind::Float));
+        let d = match &self.whitening {
+            Some(w) => tch::no_grad(|| w.apply(&d)),
+            None => d,
+        };
+        Ok(d.to_device(Device::Cpu))
     }
 
     /// ImageNet probabilities, [N, 1000] f32 on the CPU.

@@ -36,7 +36,7 @@ impl Variant {
 
 /// All parameters always exist, whatever the variant, so one weight file serves every ablation.
 pub struct Network {
-    pooling: Pooling,
+    pub(crate) pooling: Pooling,
     backbone: Backbone,
     attention: Vec<StageAttention>,
     fusion: Fusion,

@@ -124,6 +124,26 @@ pub fn to_input(img: &RgbImage, p: &Preprocess) -> Tensor {
     Tensor::from_slice(&chw).reshape([3, h as i64, w as i64])
 }
 
+/// The resized image as an RGB 0-255 float tensor ([3, H, W]) before normalisation (training
+/// augments here); `normalize(resized_rgb(img, p), p.normalization)` equals `to_input(img, p)`.
+pub fn resized_rgb(img: &RgbImage, p: &Preprocess) -> Tensor {
+    let (w, h) = target_size(img.width(), img.height(), p);
+    let resized =
+        if (w, h) == img.dimensions() { img.clone() } else { image::imageops::resize(img, w, h, FilterType::Triangle) };
+    Tensor::from_slice(resized.as_raw()).reshape([h as i64, w as i64, 3]).permute([2, 0, 1]).to_kind(tch::Kind::Float)
+}
+
+/// Normalises RGB 0-255 tensors ([3, H, W] or [N, 3, H, W]) as `to_input` does.
+pub fn normalize(rgb: &Tensor, n: Normalization) -> Tensor {
+    let c = if rgb.dim() == 4 { 1 } else { 0 };
+    let shape: Vec<i64> = (0..rgb.dim()).map(|d| if d as i64 == c { 3 } else { 1 }).collect();
+    let column = |v: [f32; 3]| Tensor::from_slice(&v).reshape(shape.as_slice());
+    match n {
+        Normalization::Caffe => rgb.flip([c]) - column(CAFFE_MEAN_BGR),
+        Normalization::Torch => (rgb / 255.0 - column(TORCH_MEAN)) / column(TORCH_STD),
+    }
+}
+
 /// Decode and preprocess in one step (the work of a decoding worker).
 pub fn prepare(bytes: &[u8], limits: &ImageLimits, p: &Preprocess) -> Result<Tensor, ImageError> {
     Ok(to_input(&decode(bytes, limits)?, p))

@@ -16,7 +16,10 @@ pub const FORMAT_NAME: &str = "loopd-weights/1";
 pub struct WeightFile {
     pub metadata: HashMap<String, String>,
     pub tensors: Vec<(String, Tensor)>,
-    /// SHA-256 of the file's bytes (hex): part of the descriptor id of what it computes.
+    /// SHA-256 (hex) of the file's content: tensors (name, dtype, shape, bytes, in name order)
+    /// and metadata (in key order). Part of the descriptor id of what it computes. Not the file's
+    /// bytes: safetensors writes metadata in hash-map order, so two imports of the same weights
+    /// differ byte-wise but not in content.
     pub sha256: String,
 }
 
@@ -27,7 +30,21 @@ impl WeightFile {
             .with_context(|| format!("{} is not a safetensors file", path.display()))?;
         let (_, meta) = SafeTensors::read_metadata(&bytes)?;
         let mut tensors = Vec::with_capacity(st.len());
-        for (name, view) in st.tensors() {
+        let mut views = st.tensors();
+        views.sort_by(|a, b| a.0.cmp(&b.0));
+        let mut hash = sha2::Sha256::new();
+        for (name, view) in &views {
+            hash.update((name.len() as u64).to_le_bytes());
+            hash.update(name.as_bytes());
+            hash.update(format!("{:?}{:?}", view.dtype(), view.shape()).as_bytes());
+            hash.update((view.data().len() as u64).to_le_bytes());
+            hash.update(view.data());
+        }
+        let metadata: BTreeMap<String, String> = meta.metadata().clone().unwrap_or_default().into_iter().collect();
+        for (k, v) in &metadata {
+            hash.update(format!("{}:{k}={}:{v};", k.len(), v.len()).as_bytes());
+        }
+        for (name, view) in views {
             let kind = match view.dtype() {
                 Dtype::F32 => Kind::Float,
                 Dtype::F16 => Kind::Half,
@@ -38,8 +55,8 @@ impl WeightFile {
             let t = Tensor::from_data_size(view.data(), &shape, kind).to_kind(Kind::Float);
             tensors.push((name, t));
         }
-        let sha256 = sha2::Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
-        Ok(Self { metadata: meta.metadata().clone().unwrap_or_default(), tensors, sha256 })
+        let sha256 = hash.finalize().iter().map(|b| format!("{b:02x}")).collect();
+        Ok(Self { metadata: metadata.into_iter().collect(), tensors, sha256 })
     }
 
     /// Writes f32 tensors (sorted by name) and the metadata.
@@ -117,4 +134,40 @@ pub fn named_tensors(vs: &VarStore) -> Vec<(String, Tensor)> {
     let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
     v.sort_by(|a, b| a.0.cmp(&b.0));
     v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The id hash follows content, not bytes: metadata is written in hash-map order, so two
+    /// writes of one content may differ byte-wise, yet they name the same weights.
+    #[test]
+    fn the_hash_names_the_content_not_the_bytes() {
+        let dir = tempfile::tempdir().unwrap();
+        let t = vec![
+            ("a".to_string(), Tensor::from_slice(&[1.0f32, 2.0])),
+            ("b".to_string(), Tensor::from_slice(&[3.0f32])),
+        ];
+        let meta: HashMap<String, String> = (0..8).map(|i| (format!("key{i}"), format!("value{i}"))).collect();
+        let mut hashes = HashSet::new();
+        for i in 0..4 {
+            let p = dir.path().join(format!("{i}.safetensors"));
+            // A fresh map each time: its iteration order (hence the header bytes) varies.
+            WeightFile::write(&p, &t, meta.clone().into_iter().collect()).unwrap();
+            hashes.insert(WeightFile::read(&p).unwrap().sha256);
+        }
+        assert_eq!(hashes.len(), 1);
+        let p = dir.path().join("other.safetensors");
+        let changed = vec![
+            ("a".to_string(), Tensor::from_slice(&[1.0f32, 2.0])),
+            ("b".to_string(), Tensor::from_slice(&[3.5f32])),
+        ];
+        WeightFile::write(&p, &changed, meta.clone()).unwrap();
+        assert!(!hashes.contains(&WeightFile::read(&p).unwrap().sha256), "a changed value keeps the hash");
+        let mut meta2 = meta;
+        meta2.insert("key0".into(), "other".into());
+        WeightFile::write(&p, &t, meta2).unwrap();
+        assert!(!hashes.contains(&WeightFile::read(&p).unwrap().sha256), "changed metadata keeps the hash");
+    }
 }
