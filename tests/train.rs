@@ -348,3 +348,23 @@ fn the_shipped_heads_are_the_default_and_find_the_desk_loop() {
     let dim = file.tensors.iter().find(|(n, _)| n == "whiten.proj").map_or(2048, |(_, t)| t.size()[0]);
     assert_eq!(line["descriptor"].as_array().unwrap().len() as i64, dim);
 }
+
+/// Sessions made by earlier releases (ids before weight hashes, and with the weight file's byte
+/// hash) stay usable by the same weights without heads; with heads they are another space.
+#[test]
+fn sessions_named_by_earlier_releases_stay_usable_without_heads() {
+    let file = WeightFile::read(&weights()).unwrap();
+    let plain = imagenet_model();
+    let byte_id = plain.config.descriptor_id(Variant::FULL, &file.file_sha256, None);
+    let pre_hash = plain.config.legacy_descriptor_id(Variant::FULL);
+    let other = plain.config.descriptor_id(Variant::FULL, &"0".repeat(64), None);
+    let cfg = || EngineConfig { warm_up: false, ..Default::default() };
+    let engine = Engine::start(plain, cfg(), ImageLimits::default()).unwrap();
+    assert!(engine.info().compatible(&byte_id), "{byte_id}");
+    assert!(engine.info().compatible(&pre_hash));
+    assert!(!engine.info().compatible(&other));
+    let mut headed = imagenet_model();
+    headed.load_heads(&root().join(loopd::cli::DEFAULT_HEADS)).unwrap();
+    let engine = Engine::start(headed, cfg(), ImageLimits::default()).unwrap();
+    assert!(!engine.info().compatible(&byte_id) && !engine.info().compatible(&pre_hash));
+}

@@ -42,8 +42,12 @@ pub fn run(c: WeightsCommand) -> Result<ExitCode> {
             let imported = tfjs::import(&dir).with_context(|| format!("importing {}", dir.display()))?;
             // Prove the result fits the network exactly before writing it.
             let model = Model::new(ModelConfig::default(), tch::Device::Cpu, crate::model::device::DType::F32)?;
-            let file =
-                WeightFile { metadata: imported.metadata.clone(), tensors: imported.tensors, sha256: String::new() };
+            let file = WeightFile {
+                metadata: imported.metadata.clone(),
+                tensors: imported.tensors,
+                sha256: String::new(),
+                file_sha256: String::new(),
+            };
             let report = load_into(model.var_store(), &file)?;
             WeightFile::write(&out, &file.tensors, file.metadata)?;
             eprintln!(

@@ -74,9 +74,9 @@ pub struct EngineInfo {
     pub descriptor_id: String,
     /// Each ablation variant's descriptor space.
     pub variant_ids: Vec<(Variant, String)>,
-    /// The full network's id as loopd 0.1 named it (before weight hashes): sessions created
-    /// then by this same configuration stay usable.
-    pub legacy_descriptor_id: String,
+    /// The full network's ids as earlier releases named them (`Model::earlier_descriptor_ids`):
+    /// sessions created then by this same configuration stay usable.
+    pub earlier_ids: Vec<String>,
     /// Length of the descriptors (2048, or a whitening's output size).
     pub dim: usize,
     pub preprocess: Preprocess,
@@ -113,7 +113,7 @@ impl EngineInfo {
 
     /// Whether a session of descriptor space `id` may take this engine's (full network) descriptors.
     pub fn compatible(&self, id: &str) -> bool {
-        id == self.descriptor_id || id == self.legacy_descriptor_id
+        id == self.descriptor_id || self.earlier_ids.iter().any(|e| e == id)
     }
 }
 
@@ -124,14 +124,7 @@ impl Engine {
         let info = Arc::new(EngineInfo {
             descriptor_id: model.descriptor_id(Variant::FULL),
             variant_ids: Variant::ALL.iter().map(|&v| (v, model.descriptor_id(v))).collect(),
-            // Sessions of loopd 0.1 were made with average pooling.
-            legacy_descriptor_id: if model.config.pooling == crate::model::config::Pooling::Gap
-                && model.heads_sha256.is_none()
-            {
-                model.config.legacy_descriptor_id(Variant::FULL)
-            } else {
-                String::new()
-            },
+            earlier_ids: model.earlier_descriptor_ids(),
             dim: model.dim() as usize,
             preprocess: model.config.preprocess.clone(),
             limits,

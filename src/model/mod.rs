@@ -27,6 +27,8 @@ pub struct Model {
     pub dtype: DType,
     /// SHA-256 (hex) of the weight file loaded; "none" for a model built without one.
     pub weights_sha256: String,
+    /// SHA-256 of the weight file's bytes (the weights' name in loopd 0.2's descriptor ids).
+    pub weights_file_sha256: String,
     /// SHA-256 (hex) of the heads file loaded on top (`--heads`), if any.
     pub heads_sha256: Option<String>,
     /// Learned whitening from the heads file, applied after pooling.
@@ -41,7 +43,17 @@ impl Model {
         dtype.check(device)?;
         let vs = VarStore::new(Device::Cpu);
         let net = Network::new(&vs.root(), &config);
-        Ok(Self { config, device, dtype, weights_sha256: "none".into(), heads_sha256: None, whitening: None, vs, net })
+        Ok(Self {
+            config,
+            device,
+            dtype,
+            weights_sha256: "none".into(),
+            weights_file_sha256: "none".into(),
+            heads_sha256: None,
+            whitening: None,
+            vs,
+            net,
+        })
     }
 
     /// Loads a loopd weight file; its metadata fixes the stride layout and normalisation.
@@ -56,12 +68,27 @@ impl Model {
         let mut model = Self::new(config, Device::Cpu, DType::F32)?;
         let report = weights::load_into(&model.vs, &file)?;
         model.weights_sha256 = file.sha256.clone();
+        model.weights_file_sha256 = file.file_sha256.clone();
         model.to(device, dtype)?;
         Ok((model, report))
     }
 
     /// Loads a heads file (`loopd train`'s output) on top of the backbone. Its pooling setting,
     /// if it states one, replaces the configured one (its whitening was fitted after it).
+    /// Names the same descriptor space had in earlier releases, for sessions made then: the id
+    /// before weight hashes (loopd 0.1, average pooling) and the id with the weight file's byte
+    /// hash (0.2). Only without heads: heads did not exist then.
+    pub fn earlier_descriptor_ids(&self) -> Vec<String> {
+        if self.heads_sha256.is_some() {
+            return Vec::new();
+        }
+        let mut ids = vec![self.config.descriptor_id(Variant::FULL, &self.weights_file_sha256, None)];
+        if self.config.pooling == config::Pooling::Gap {
+            ids.push(self.config.legacy_descriptor_id(Variant::FULL));
+        }
+        ids
+    }
+
     pub fn load_heads(&mut self, path: &Path) -> Result<heads::LoadedHeads> {
         let mut loaded = heads::load_into(&self.vs, path, &self.weights_sha256)?;
         if let Some(p) = loaded.metadata.get(heads::META_POOLING) {

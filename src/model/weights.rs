@@ -21,6 +21,9 @@ pub struct WeightFile {
     /// bytes: safetensors writes metadata in hash-map order, so two imports of the same weights
     /// differ byte-wise but not in content.
     pub sha256: String,
+    /// SHA-256 of the file's bytes: how loopd 0.2 named weights in descriptor ids (sessions made
+    /// then stay usable by the same weights).
+    pub file_sha256: String,
 }
 
 impl WeightFile {
@@ -55,8 +58,10 @@ impl WeightFile {
             let t = Tensor::from_data_size(view.data(), &shape, kind).to_kind(Kind::Float);
             tensors.push((name, t));
         }
-        let sha256 = hash.finalize().iter().map(|b| format!("{b:02x}")).collect();
-        Ok(Self { metadata: metadata.into_iter().collect(), tensors, sha256 })
+        let hex = |d: &[u8]| d.iter().map(|b| format!("{b:02x}")).collect::<String>();
+        let sha256 = hex(&hash.finalize());
+        let file_sha256 = hex(&sha2::Sha256::digest(&bytes));
+        Ok(Self { metadata: metadata.into_iter().collect(), tensors, sha256, file_sha256 })
     }
 
     /// Writes f32 tensors (sorted by name) and the metadata.
