@@ -148,20 +148,24 @@ fn load_model(spec: &TrainSpec, config: &ModelConfig, heads: Option<&Path>) -> R
     Ok(model)
 }
 
+/// An engine for `loopd eval`'s embedding code (validation, whitening frames), with its setup.
+fn embedding_engine(spec: &TrainSpec, model: Model) -> Result<(Engine, EmbedSetup<'_>)> {
+    let cfg = EngineConfig { max_batch: 16, warm_up: false, ..Default::default() };
+    let setup = EmbedSetup {
+        weights: &spec.weights,
+        variant: Variant::FULL,
+        cache_dir: spec.cache_dir.as_deref(),
+        max_batch: cfg.max_batch,
+    };
+    Ok((Engine::start(model, cfg, ImageLimits::default())?, setup))
+}
+
 /// Validates a heads file on every validation set through `loopd eval`'s code.
 pub fn validate(spec: &TrainSpec, heads: Option<&Path>) -> Result<Vec<ValScore>> {
     if spec.val.is_empty() {
         return Ok(Vec::new());
     }
-    let model = load_model(spec, &spec.val_config, heads)?;
-    let cfg = EngineConfig { max_batch: 16, warm_up: false, ..Default::default() };
-    let engine = Engine::start(model, cfg, ImageLimits::default())?;
-    let setup = EmbedSetup {
-        weights: &spec.weights,
-        variant: Variant::FULL,
-        cache_dir: spec.cache_dir.as_deref(),
-        max_batch: 16,
-    };
+    let (engine, setup) = embedding_engine(spec, load_model(spec, &spec.val_config, heads)?)?;
     spec.val
         .iter()
         .map(|v| {
@@ -498,14 +502,7 @@ fn fit_whitening(spec: &TrainSpec, heads_path: &Path, w: &WhitenSpec) -> Result<
     let n = spec.set.samples.len();
     let step = n.div_ceil(w.frames.max(1)).max(1);
     let files: Vec<PathBuf> = spec.set.samples.iter().step_by(step).map(|s| s.path.clone()).collect();
-    let cfg = EngineConfig { max_batch: 16, warm_up: false, ..Default::default() };
-    let engine = Engine::start(model, cfg, ImageLimits::default())?;
-    let setup = EmbedSetup {
-        weights: &spec.weights,
-        variant: Variant::FULL,
-        cache_dir: spec.cache_dir.as_deref(),
-        max_batch: 16,
-    };
+    let (engine, setup) = embedding_engine(spec, model)?;
     let rows = embed_files(&engine, &files, &setup, "whitening frames")?;
     let flat: Vec<f32> = rows.iter().flatten().copied().collect();
     let dim = rows.first().map_or(0, Vec::len) as i64;
