@@ -102,7 +102,10 @@ impl TrainSet {
         let local = |i: usize, n: usize| i.checked_sub(offset).filter(|&l| l < n);
         let nr = refs.len();
         let mut uf = Places((0..nr + if queries.is_some() { nq } else { 0 }).collect());
-        let mut position: Vec<i64> = (0..uf.0.len()).map(|i| (offset + i % nr.max(1)) as i64).collect();
+        // Each frame's place on the route: its own index (query frames: that of the reference frame
+        // they match, set below).
+        let mut position: Vec<i64> =
+            (0..uf.0.len()).map(|i| (offset + if i < nr { i } else { i - nr }) as i64).collect();
         let mut pairs = 0;
         for (&q, rs) in &gt.loops {
             for &r in rs {
