@@ -172,3 +172,46 @@ async fn oversized_inputs_and_latency() {
     assert_eq!(http.get(url("/healthz")).send().await.unwrap().status(), 200);
     server.shutdown().await.unwrap();
 }
+
+/// Offline sequence jobs are kept in sled: after a restart a finished job answers with its
+/// loops, and new jobs get new ids (no reuse of a kept one).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_jobs_answer_after_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path(), Duration::from_secs(5)).await;
+    let http = reqwest::Client::new();
+    let base = format!("http://{}", server.http_addr);
+    let r = http.post(format!("{base}/v1/sessions")).json(&serde_json::json!({ "id": "desk" })).send().await.unwrap();
+    assert_eq!(r.status(), 201);
+    let sequence = || {
+        let mut form = reqwest::multipart::Form::new().text("min_score", "0.8");
+        for i in 1..=10 {
+            let bytes = std::fs::read(data(&format!("slambook2-ch11/{i}.png"))).unwrap();
+            form = form.part("image", reqwest::multipart::Part::bytes(bytes).file_name(format!("{i}.png")));
+        }
+        form
+    };
+    let post = |form| http.post(format!("{base}/v1/sessions/desk/sequences")).multipart(form).send();
+    let job: serde_json::Value = post(sequence()).await.unwrap().json().await.unwrap();
+    let id = job["job_id"].as_str().unwrap().to_string();
+    let finished = loop {
+        let st: serde_json::Value =
+            http.get(format!("{base}/v1/jobs/{id}")).send().await.unwrap().json().await.unwrap();
+        if st["state"] != "running" {
+            break st;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_eq!(finished["state"], "done");
+    assert!(!finished["loops"].as_array().unwrap().is_empty(), "{finished}");
+    server.shutdown().await.unwrap();
+
+    let server = start(dir.path(), Duration::from_secs(5)).await;
+    let base = format!("http://{}", server.http_addr);
+    let after: serde_json::Value = http.get(format!("{base}/v1/jobs/{id}")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(after, finished, "the same job status after a restart");
+    let post = |form| http.post(format!("{base}/v1/sessions/desk/sequences")).multipart(form).send();
+    let next: serde_json::Value = post(sequence()).await.unwrap().json().await.unwrap();
+    assert_ne!(next["job_id"], finished["job_id"], "a new job gets a new id");
+    server.shutdown().await.unwrap();
+}

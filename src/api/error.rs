@@ -6,6 +6,9 @@ use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 
+/// What 429 and 503 answers give as `Retry-After` (seconds).
+const RETRY_AFTER_SECS: &str = "1";
+
 /// Longest error message sent back (client input echoed in it is cut).
 const MAX_MESSAGE_BYTES: usize = 1024;
 
@@ -53,7 +56,7 @@ impl From<StoreError> for ApiError {
             StoreError::SessionExists(_) | StoreError::FrameExists(..) => ApiError::AlreadyExists(msg),
             StoreError::InvalidArgument(_) => ApiError::InvalidArgument(msg),
             StoreError::Storage(_) => ApiError::Internal(msg),
-            StoreError::Stopped => ApiError::Unavailable(msg),
+            StoreError::Stopped | StoreError::Unavailable(_) => ApiError::Unavailable(msg),
         }
     }
 }
@@ -114,6 +117,13 @@ impl IntoResponse for ApiError {
         if status.is_server_error() {
             tracing::error!(error = %self, "request failed");
         }
-        (status, Json(serde_json::json!({ "error": self.message(), "code": status.as_u16() }))).into_response()
+        let body = Json(serde_json::json!({ "error": self.message(), "code": status.as_u16() }));
+        match self {
+            // Overload and outages pass: a client knows when to come back.
+            ApiError::Overloaded(_) | ApiError::Unavailable(_) => {
+                (status, [(axum::http::header::RETRY_AFTER, RETRY_AFTER_SECS)], body).into_response()
+            }
+            _ => (status, body).into_response(),
+        }
     }
 }

@@ -29,7 +29,7 @@ pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
         .layer(DefaultBodyLimit::max(max_body_bytes));
     Router::new()
         .route("/healthz", get(|| async { "ok" }))
-        .route("/readyz", get(|| async { "ready" }))
+        .route("/readyz", get(ready))
         .route("/metrics", get(metrics))
         .route("/v1/info", get(info))
         .route("/v1/embed", post(embed))
@@ -43,6 +43,17 @@ pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
         .layer(DefaultBodyLimit::max(frame_body))
         .merge(sequences)
         .with_state(state)
+}
+
+/// 503 while writes cannot succeed (a storage failure not yet recovered): a balancer or an
+/// orchestrator sends robots elsewhere meanwhile.
+async fn ready(State(s): State<Arc<AppState>>) -> Result<&'static str, ApiError> {
+    match s.service.store.failure() {
+        None => Ok("ready"),
+        Some(e) => {
+            Err(ApiError::Unavailable(format!("not ready: storage failed ({e}); writes are refused until it recovers")))
+        }
+    }
 }
 
 async fn metrics(State(s): State<Arc<AppState>>) -> impl IntoResponse {
@@ -349,7 +360,7 @@ async fn start_sequence(
     let form = read_form(req, &["image", "archive"]).await?;
     let files = form.files.into_iter().map(|f| (f.part, f.file_name, f.data)).collect();
     let seq = SequenceRequest::from_form(form.fields, files, form.body)?;
-    let job_id = s.service.start_sequence(&id, seq)?;
+    let job_id = s.service.start_sequence(&id, seq).await?;
     Ok((StatusCode::ACCEPTED, Json(JobCreated { status_url: format!("/v1/jobs/{job_id}"), job_id })))
 }
 

@@ -4,15 +4,19 @@ use super::error::ApiError;
 use super::service::{Content, FrameInput, LoopService, QueryOverrides};
 use crate::files::{is_image, natural_key};
 use crate::store::query::Scope;
+use crate::store::Store;
 use bytes::Bytes;
 use futures::StreamExt;
 use parking_lot::Mutex;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::sync::Arc;
 
 /// Finished jobs whose status stays available.
 const KEPT_JOBS: usize = 100;
+
+/// How often a running job's record is rewritten (its progress and loops so far).
+const SAVE_EVERY: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// Most frames one job may hold (bounded memory); the body size limit applies as well.
 pub const MAX_JOB_FRAMES: usize = 100_000;
@@ -24,7 +28,7 @@ pub struct SequenceRequest {
     pub exclude_last_frames: usize,
 }
 
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct LoopClosure {
     pub query_index: usize,
     pub query_name: String,
@@ -35,15 +39,18 @@ pub struct LoopClosure {
     pub score: f32,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(rename_all = "snake_case")]
 pub enum JobState {
     Running,
     Done,
     Failed,
+    /// The server stopped while the job ran: its first `done` frames are in the session and its
+    /// loops so far are kept; the images are not, so a client restarts it by sending them again.
+    Interrupted,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct JobStatus {
     pub job_id: String,
     pub session_id: String,
@@ -127,16 +134,44 @@ impl SequenceRequest {
     }
 }
 
-#[derive(Default)]
 pub struct Jobs {
     jobs: Mutex<HashMap<String, Arc<Mutex<JobStatus>>>>,
     next: std::sync::atomic::AtomicU64,
     pub max_running: usize,
+    /// Where job records are kept (they outlive the process).
+    store: Arc<Store>,
+}
+
+fn job_number(id: &str) -> u64 {
+    id.trim_start_matches("job-").parse().unwrap_or(0)
 }
 
 impl Jobs {
-    pub fn new(max_running: usize) -> Self {
-        Self { max_running: max_running.max(1), ..Default::default() }
+    /// The jobs recorded in the store; those that were running when the server stopped are
+    /// marked interrupted.
+    pub fn new(max_running: usize, store: Arc<Store>) -> Self {
+        let mut jobs = HashMap::new();
+        let records = store.jobs().unwrap_or_else(|e| {
+            tracing::error!(error = %e, "job records not readable");
+            Vec::new()
+        });
+        for (id, record) in records {
+            let mut status: JobStatus = match serde_json::from_slice(&record) {
+                Ok(s) => s,
+                Err(e) => {
+                    tracing::warn!(job = %id, error = %e, "job record not readable: skipped");
+                    continue;
+                }
+            };
+            if status.state == JobState::Running {
+                status.state = JobState::Interrupted;
+                save(&store, &status);
+                tracing::warn!(job = %id, done = status.done, total = status.total, "job interrupted by a restart");
+            }
+            jobs.insert(id, Arc::new(Mutex::new(status)));
+        }
+        let next = jobs.keys().map(|k| job_number(k)).max().unwrap_or(0);
+        Self { jobs: Mutex::new(jobs), next: next.into(), max_running: max_running.max(1), store }
     }
 
     pub fn status(&self, id: &str) -> Option<JobStatus> {
@@ -154,11 +189,14 @@ impl Jobs {
             let mut finished: Vec<(u64, String)> = jobs
                 .iter()
                 .filter(|(_, j)| !matches!(j.lock().state, JobState::Running))
-                .map(|(k, _)| (k.trim_start_matches("job-").parse().unwrap_or(0), k.clone()))
+                .map(|(k, _)| (job_number(k), k.clone()))
                 .collect();
             finished.sort();
             for (_, k) in finished.iter().take(jobs.len() + 1 - KEPT_JOBS) {
                 jobs.remove(k);
+                if let Err(e) = self.store.remove_job(k) {
+                    tracing::warn!(job = %k, error = %e, "job record not removed");
+                }
             }
         }
         let id = format!("job-{}", self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1);
@@ -171,9 +209,22 @@ impl Jobs {
             loops: Vec::new(),
             errors: Vec::new(),
         }));
+        self.store.put_job(&id, &record(&status.lock()))?;
         jobs.insert(id.clone(), status.clone());
         tokio::spawn(run(service, session, seq, status));
         Ok(id)
+    }
+}
+
+fn record(status: &JobStatus) -> Vec<u8> {
+    serde_json::to_vec(status).expect("a job status serialises")
+}
+
+/// Keeps the job's record (durable with the next group commit); a failure is logged, the job
+/// goes on.
+fn save(store: &Store, status: &JobStatus) {
+    if let Err(e) = store.put_job(&status.job_id, &record(status)) {
+        tracing::warn!(job = %status.job_id, error = %e, "job record not saved");
     }
 }
 
@@ -198,7 +249,13 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
     };
     let mut names: HashMap<u64, (usize, String)> = HashMap::new();
     let mut failed = None;
+    let mut saved = std::time::Instant::now();
     while let Some((i, name, result)) = embedded.next().await {
+        if saved.elapsed() >= SAVE_EVERY {
+            // Durable with the next frame's commit.
+            save(&service.store, &status.lock());
+            saved = std::time::Instant::now();
+        }
         let descriptor = match result {
             Ok(d) => d,
             Err(e) => {
@@ -241,13 +298,20 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
             }
         }
     }
-    let mut s = status.lock();
-    match failed {
-        Some(e) => {
-            s.errors.push(e);
-            s.state = JobState::Failed;
+    let finished = {
+        let mut s = status.lock();
+        match failed {
+            Some(e) => {
+                s.errors.push(e);
+                s.state = JobState::Failed;
+            }
+            None => s.state = JobState::Done,
         }
-        None => s.state = JobState::Done,
+        tracing::info!(job = %s.job_id, frames = s.done, loops = s.loops.len(), "sequence job finished");
+        s.clone()
+    };
+    save(&service.store, &finished);
+    if let Err(e) = service.store.durable_jobs().await {
+        tracing::warn!(job = %finished.job_id, error = %e, "job record not made durable");
     }
-    tracing::info!(job = %s.job_id, frames = s.done, loops = s.loops.len(), "sequence job finished");
 }

@@ -1,4 +1,5 @@
 //! Network APIs over the engine and the store: gRPC and HTTP, one shared service.
+pub mod conn;
 pub mod error;
 pub mod grpc;
 pub mod http;

@@ -1,4 +1,5 @@
 //! One process, both APIs: gRPC (tonic) and HTTP (axum) over one engine and one store.
+use super::conn::{accept, ConnLimits};
 use super::grpc::{GrpcApi, LoopdServer};
 use super::http::{router, AppState};
 use super::service::LoopService;
@@ -9,11 +10,15 @@ use crate::pb;
 use crate::store::{SearchConfig, Store};
 use crate::verify::pool::VerifyConfig;
 use anyhow::{Context, Result};
-use axum::serve::ListenerExt;
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+use hyper_util::server::conn::auto;
+use hyper_util::service::TowerToHyperService;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
-use tonic::transport::server::TcpIncoming;
+use std::time::Duration;
+use tokio::sync::Semaphore;
+use tonic_health::ServingStatus;
 
 #[derive(Clone, Debug)]
 pub struct ServerConfig {
@@ -32,6 +37,34 @@ pub struct ServerConfig {
     /// How long shutdown waits for open connections after streams were told to end; then they
     /// are cut (acknowledged frames are durable either way).
     pub shutdown_grace: std::time::Duration,
+    /// How often a store whose writes failed (a full disk) tries to reopen.
+    pub storage_retry: std::time::Duration,
+    pub connections: ConnectionConfig,
+}
+
+/// What one client connection may hold (see `conn.rs`).
+#[derive(Clone, Copy, Debug)]
+pub struct ConnectionConfig {
+    /// A request line and headers (HTTP), or the HTTP/2 preface (gRPC), must arrive within this.
+    pub header_timeout: Duration,
+    /// An HTTP connection with nothing read or written for this long is closed (gRPC channels
+    /// may idle: HTTP/2 keep-alive pings every `idle / 2` close those whose peer is gone).
+    pub idle_timeout: Duration,
+    /// One HTTP request, its body included, must be answered within this (408 otherwise).
+    pub request_timeout: Duration,
+    /// Open connections per server (HTTP and gRPC each); more are closed at once.
+    pub max_connections: usize,
+}
+
+impl Default for ConnectionConfig {
+    fn default() -> Self {
+        Self {
+            header_timeout: Duration::from_secs(10),
+            idle_timeout: Duration::from_secs(60),
+            request_timeout: Duration::from_secs(300),
+            max_connections: 1024,
+        }
+    }
 }
 
 impl ServerConfig {
@@ -50,6 +83,8 @@ impl ServerConfig {
             search: SearchConfig::default(),
             verify: VerifyConfig::default(),
             shutdown_grace: std::time::Duration::from_secs(10),
+            storage_retry: std::time::Duration::from_secs(2),
+            connections: ConnectionConfig::default(),
         }
     }
 }
@@ -83,22 +118,11 @@ impl RunningServer {
         let (http_addr, grpc_addr) = (http.local_addr()?, grpc.local_addr()?);
 
         let state = Arc::new(AppState { service: service.clone() });
-        let app = router(state, cfg.max_body_bytes);
-        let mut http_rx = rx.clone();
-        // No Nagle: small answers leave at once instead of waiting for the client's delayed ACK.
-        let http = http.tap_io(|tcp| {
-            if let Err(e) = tcp.set_nodelay(true) {
-                tracing::debug!(error = %e, "TCP_NODELAY not set");
-            }
-        });
-        let http_task = tokio::spawn(async move {
-            axum::serve(http, app)
-                .with_graceful_shutdown(async move {
-                    let _ = http_rx.wait_for(|s| *s).await;
-                })
-                .await?;
-            Ok(())
-        });
+        let app = router(state, cfg.max_body_bytes).layer(tower_http::timeout::TimeoutLayer::with_status_code(
+            axum::http::StatusCode::REQUEST_TIMEOUT,
+            cfg.connections.request_timeout,
+        ));
+        let http_task = tokio::spawn(serve_http(http, app, cfg.connections, rx.clone()));
 
         let (health, health_service) = tonic_health::server::health_reporter();
         health.set_serving::<LoopdServer<GrpcApi>>().await;
@@ -109,13 +133,24 @@ impl RunningServer {
         let api = LoopdServer::new(GrpcApi { service: service.clone(), shutdown: rx.clone() })
             .max_decoding_message_size(cfg.limits.max_bytes + 64 * 1024)
             .max_encoding_message_size(64 << 20);
+        let watcher = tokio::spawn(watch_storage(service.store.clone(), health, cfg.storage_retry, rx.clone()));
         let mut grpc_rx = rx;
+        let c = cfg.connections;
+        // The preface is 24 bytes; a gRPC channel may then idle (keep-alive pings check the peer).
+        let limits = ConnLimits { opening: c.header_timeout, opening_bytes: 24, idle: None };
+        let slots = Arc::new(Semaphore::new(c.max_connections.max(1)));
+        let incoming = futures::stream::unfold((grpc, slots), move |(l, slots)| async move {
+            let conn = accept(&l, limits, &slots).await;
+            Some((Ok::<_, std::io::Error>(conn), (l, slots)))
+        });
         let grpc_task = tokio::spawn(async move {
             tonic::transport::Server::builder()
+                .http2_keepalive_interval(Some(c.idle_timeout / 2))
+                .http2_keepalive_timeout(Some(c.header_timeout))
                 .add_service(health_service)
                 .add_service(reflection)
                 .add_service(api)
-                .serve_with_incoming_shutdown(TcpIncoming::from(grpc).with_nodelay(Some(true)), async move {
+                .serve_with_incoming_shutdown(incoming, async move {
                     let _ = grpc_rx.wait_for(|s| *s).await;
                 })
                 .await?;
@@ -128,7 +163,7 @@ impl RunningServer {
             service,
             shutdown,
             grace: cfg.shutdown_grace,
-            tasks: vec![http_task, grpc_task],
+            tasks: vec![http_task, grpc_task, watcher],
         })
     }
 
@@ -153,4 +188,80 @@ impl RunningServer {
         self.service.store.flush()?;
         Ok(())
     }
+}
+
+/// While the store refuses writes (a full disk, say), tries to reopen it every `every` and
+/// reports the state in gRPC health (NOT_SERVING until writes succeed again; `/readyz` reads the
+/// store itself).
+async fn watch_storage(
+    store: Arc<Store>,
+    health: tonic_health::server::HealthReporter,
+    every: std::time::Duration,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) -> Result<()> {
+    let serving = std::sync::atomic::AtomicBool::new(true);
+    // Health follows the store within a tick, before and after each reopen (which can take
+    // seconds); reopens are tried every `every`.
+    let report = || async {
+        let ok = store.failure().is_none();
+        if serving.swap(ok, std::sync::atomic::Ordering::Relaxed) != ok {
+            let status = if ok { ServingStatus::Serving } else { ServingStatus::NotServing };
+            health.set_service_status("", status).await;
+            match ok {
+                true => health.set_serving::<LoopdServer<GrpcApi>>().await,
+                false => health.set_not_serving::<LoopdServer<GrpcApi>>().await,
+            }
+        }
+    };
+    let tick = every.min(Duration::from_millis(100));
+    let mut next_try = tokio::time::Instant::now();
+    loop {
+        tokio::select! {
+            _ = stop.wait_for(|s| *s) => return Ok(()),
+            _ = tokio::time::sleep(tick) => {}
+        }
+        report().await;
+        if store.failure().is_some() && tokio::time::Instant::now() >= next_try {
+            let s = store.clone();
+            match tokio::task::spawn_blocking(move || s.reopen()).await {
+                Ok(Err(e)) => tracing::warn!(error = %e, "store not reopened yet"),
+                Err(e) => tracing::error!(error = %e, "store reopen panicked"),
+                Ok(Ok(())) => {}
+            }
+            next_try = tokio::time::Instant::now() + every;
+            report().await;
+        }
+    }
+}
+
+/// The HTTP server: our own accept loop (axum::serve sets no header or idle deadline), hyper's
+/// HTTP/1 and HTTP/2, graceful shutdown once `stop` turns true (connections finish their
+/// request; the caller bounds the wait).
+async fn serve_http(
+    listener: tokio::net::TcpListener,
+    app: axum::Router,
+    c: ConnectionConfig,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) -> Result<()> {
+    let limits = ConnLimits { opening: c.header_timeout, opening_bytes: 1, idle: Some(c.idle_timeout) };
+    let slots = Arc::new(Semaphore::new(c.max_connections.max(1)));
+    let mut builder = auto::Builder::new(TokioExecutor::new());
+    builder.http1().timer(TokioTimer::new()).header_read_timeout(c.header_timeout);
+    let graceful = hyper_util::server::graceful::GracefulShutdown::new();
+    loop {
+        let conn = tokio::select! {
+            _ = stop.wait_for(|s| *s) => break,
+            conn = accept(&listener, limits, &slots) => conn,
+        };
+        let service = TowerToHyperService::new(app.clone());
+        let conn = graceful.watch(builder.serve_connection_with_upgrades(TokioIo::new(conn), service).into_owned());
+        tokio::spawn(async move {
+            if let Err(e) = conn.await {
+                tracing::debug!(error = %e, "HTTP connection ended");
+            }
+        });
+    }
+    drop(listener);
+    graceful.shutdown().await;
+    Ok(())
 }

@@ -206,7 +206,8 @@ fn intrinsics(c: &Camera) -> Intrinsics {
 
 impl LoopService {
     pub fn new(engine: Engine, store: Arc<Store>, max_jobs: usize, verify: VerifyConfig) -> Self {
-        let service = Self { engine, store, jobs: Arc::new(Jobs::new(max_jobs)), verifier: Verifier::new(verify) };
+        let jobs = Arc::new(Jobs::new(max_jobs, store.clone()));
+        let service = Self { engine, store, jobs, verifier: Verifier::new(verify) };
         service.report_foreign_sessions();
         service
     }
@@ -470,12 +471,15 @@ impl LoopService {
         Ok((id, matches))
     }
 
-    /// Starts an offline sequence job on a session; its id is returned at once.
-    pub fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
+    /// Starts an offline sequence job on a session; its id is returned once its record is
+    /// durable (it answers after a restart), before the job has done anything.
+    pub async fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
         let s = self.store.session(session)?;
         self.check_space(&s)?;
         check_robot_id(&seq.robot_id)?;
-        self.jobs.start(self.clone(), s.meta.id.clone(), seq)
+        let id = self.jobs.start(self.clone(), s.meta.id.clone(), seq)?;
+        self.store.durable_jobs().await?;
+        Ok(id)
     }
 
     pub fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {

@@ -1,5 +1,5 @@
 use super::ModelArgs;
-use crate::api::server::{RunningServer, ServerConfig};
+use crate::api::server::{ConnectionConfig, RunningServer, ServerConfig};
 use crate::engine::EngineConfig;
 use crate::model::device::parse_device;
 use crate::model::preprocess::ImageLimits;
@@ -72,6 +72,23 @@ pub struct ServeArgs {
     /// Seconds shutdown waits for open connections once streams were told to end.
     #[arg(long, env = "LOOPD_SHUTDOWN_GRACE_SECS", default_value_t = 10.0)]
     pub shutdown_grace_secs: f64,
+    /// Seconds between attempts to reopen the store after its writes failed (a full disk);
+    /// writes are refused and readiness is 503 until one succeeds.
+    #[arg(long, env = "LOOPD_STORAGE_RETRY_SECS", default_value_t = 2.0)]
+    pub storage_retry_secs: f64,
+    /// Seconds a client has for an HTTP request's headers or gRPC's connection preface.
+    #[arg(long, env = "LOOPD_HEADER_TIMEOUT_SECS", default_value_t = 10.0)]
+    pub header_timeout_secs: f64,
+    /// Seconds an HTTP connection may sit with nothing read or written (gRPC channels may idle;
+    /// keep-alive pings every half of this find dead peers).
+    #[arg(long, env = "LOOPD_IDLE_TIMEOUT_SECS", default_value_t = 60.0)]
+    pub idle_timeout_secs: f64,
+    /// Seconds one HTTP request, body included, may take before 408.
+    #[arg(long, env = "LOOPD_REQUEST_TIMEOUT_SECS", default_value_t = 300.0)]
+    pub request_timeout_secs: f64,
+    /// Open connections per server (HTTP and gRPC each); more are closed at once.
+    #[arg(long, env = "LOOPD_MAX_CONNECTIONS", default_value_t = 1024)]
+    pub max_connections: usize,
     /// Feature extractions and candidate checks running at once (default: number of cores).
     #[arg(long, env = "LOOPD_VERIFY_WORKERS")]
     pub verify_workers: Option<usize>,
@@ -116,6 +133,13 @@ impl ServeArgs {
             max_jobs: self.max_jobs,
             search: SearchConfig::default(),
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs.clamp(0.0, 3600.0)),
+            storage_retry: Duration::from_secs_f64(self.storage_retry_secs.clamp(0.1, 3600.0)),
+            connections: ConnectionConfig {
+                header_timeout: Duration::from_secs_f64(self.header_timeout_secs.clamp(0.1, 3600.0)),
+                idle_timeout: Duration::from_secs_f64(self.idle_timeout_secs.clamp(0.1, 86400.0)),
+                request_timeout: Duration::from_secs_f64(self.request_timeout_secs.clamp(0.1, 86400.0)),
+                max_connections: self.max_connections.max(1),
+            },
             verify: {
                 let defaults = VerifyConfig::default();
                 VerifyConfig {

@@ -3,7 +3,9 @@
 //! Writers insert into sled, then wait here. One flusher thread takes every waiter queued
 //! so far and runs a single `flush()` (one fsync) for all of them, so N robots writing at
 //! once cost about one fsync per flush interval instead of N.
+use super::disk::Health;
 use std::sync::mpsc;
+use std::sync::Arc;
 use tokio::sync::oneshot;
 
 /// What the flusher runs once a write's flush has finished, before it answers the writer.
@@ -20,7 +22,8 @@ pub struct GroupCommit {
 }
 
 impl GroupCommit {
-    pub fn start(db: sled::Db) -> Self {
+    /// `health` learns of a failed flush: sled fails every write after one until a reopen.
+    pub fn start(db: sled::Db, health: Arc<Health>) -> Self {
         let (tx, rx) = mpsc::channel::<Waiter>();
         let thread = std::thread::Builder::new()
             .name("loopd-flush".into())
@@ -29,7 +32,10 @@ impl GroupCommit {
                     let mut waiters = vec![first];
                     waiters.extend(rx.try_iter());
                     // Every waiter's insert happened before it queued, so this flush covers it.
-                    let result = db.flush().map(|_| ()).map_err(|e| e.to_string());
+                    let result = db.flush().map(|_| ()).map_err(|e| super::disk::describe(&e));
+                    if let Err(e) = &result {
+                        health.fail(e);
+                    }
                     for w in waiters {
                         if let Some(after) = w.after {
                             after(&result);
@@ -42,14 +48,9 @@ impl GroupCommit {
         Self { tx: Some(tx), thread: Some(thread) }
     }
 
-    /// Resolves once everything written before the call is on disk.
-    pub async fn durable(&self) -> Result<(), String> {
-        self.durable_then(None).await
-    }
-
-    /// As [`GroupCommit::durable`], and `after` runs on the flusher with the flush's result
-    /// whether or not the caller is still waiting: a write and what must follow its flush
-    /// (publishing it to the index) cannot be split by a dropped request.
+    /// Resolves once everything written before the call is on disk; `after` runs on the flusher
+    /// with the flush's result whether or not the caller is still waiting: a write and what must
+    /// follow its flush (publishing it to the index) cannot be split by a dropped request.
     pub fn durable_then(&self, after: Option<AfterFlush>) -> impl std::future::Future<Output = Result<(), String>> {
         let (reply, rx) = oneshot::channel();
         // Queued now, not at the first poll: the caller's writes are already in sled.

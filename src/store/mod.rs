@@ -1,20 +1,23 @@
 //! Map sessions on disk (sled) with an in-memory exact search index per session.
 pub mod device;
+pub mod disk;
 pub mod durability;
 pub mod index;
+mod job_records;
 pub mod kernels;
 pub mod query;
 pub mod record;
+mod reopen;
 
-use durability::GroupCommit;
+use disk::{Disk, Health};
 use index::SessionIndex;
-use parking_lot::{Mutex, RwLock};
+use parking_lot::{MappedRwLockReadGuard, Mutex, RwLock, RwLockReadGuard};
 use query::{LoopQuery, Match, Pose};
 pub use record::Storage;
 use record::{decode_frame, encode_frame, frame_key, key_frame, FrameHeader, SessionMeta};
 use serde::Serialize;
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::Instant;
@@ -36,11 +39,14 @@ pub enum StoreError {
     Storage(String),
     #[error("search pool stopped")]
     Stopped,
+    /// Writes cannot succeed now (a storage failure not yet recovered, or a reopen under way).
+    #[error("{0}")]
+    Unavailable(String),
 }
 
 impl From<sled::Error> for StoreError {
     fn from(e: sled::Error) -> Self {
-        StoreError::Storage(e.to_string())
+        StoreError::Storage(disk::describe(&e))
     }
 }
 
@@ -85,26 +91,41 @@ pub struct SessionInfo {
     pub bytes_in_memory: usize,
 }
 
+/// A session's trees in the open database; None while the store reopens it.
+struct Trees {
+    frames: sled::Tree,
+    features: sled::Tree,
+}
+
 pub struct Session {
     pub meta: SessionMeta,
-    tree: sled::Tree,
-    features: sled::Tree,
+    trees: RwLock<Option<Trees>>,
     index: RwLock<SessionIndex>,
     next_id: AtomicU64,
     bytes: AtomicU64,
 }
 
 pub struct Store {
-    db: sled::Db,
-    sessions_tree: sled::Tree,
+    dir: PathBuf,
+    /// The open database; None while a reopen replaces it.
+    disk: RwLock<Option<Disk>>,
+    health: Arc<Health>,
     sessions: RwLock<HashMap<String, Arc<Session>>>,
-    /// Serialises session creation and deletion (not frame writes).
+    /// Serialises session creation and deletion (not frame writes) and reopens.
     admin: Mutex<()>,
-    commit: GroupCommit,
     search_threads: usize,
     /// Searches running at once on blocking threads (never on the async executor).
     search_slots: Arc<Semaphore>,
     search: SearchConfig,
+}
+
+/// A write whose flush failed: not stored, and the store refuses writes until it recovers.
+fn not_durable(e: String) -> StoreError {
+    StoreError::Unavailable(format!("storage failed ({e}); not stored, retry later"))
+}
+
+fn reopening() -> StoreError {
+    StoreError::Unavailable("the store is being reopened after a storage failure (retry later)".into())
 }
 
 fn session_tree_name(id: &str) -> String {
@@ -169,15 +190,15 @@ impl Store {
     /// As [`Store::open`], with searches where `search` says.
     pub fn open_with(dir: &Path, search: SearchConfig) -> Result<Self, StoreError> {
         std::fs::create_dir_all(dir).map_err(|e| StoreError::Storage(format!("{}: {e}", dir.display())))?;
-        let db = sled::Config::new().path(dir.join("sled")).open()?;
-        let sessions_tree = db.open_tree("sessions")?;
+        let health = Arc::new(Health::default());
+        let disk = Disk::open(dir, health.clone())?;
         let t = Instant::now();
         let mut sessions = HashMap::new();
         let mut frames = 0;
-        for entry in sessions_tree.iter() {
+        for entry in disk.sessions.iter() {
             let (_, v) = entry?;
             let meta: SessionMeta = serde_json::from_slice(&v).map_err(|e| StoreError::Storage(e.to_string()))?;
-            let session = Session::load(&db, meta, search)?;
+            let session = Session::load(&disk.db, meta, search)?;
             let index = session.index.read();
             index.upload();
             frames += index.len();
@@ -191,13 +212,12 @@ impl Store {
             search_device = search.device.map_or_else(|| "host".to_string(), |d| format!("{d:?}")),
             "indexes rebuilt from sled"
         );
-        let commit = GroupCommit::start(db.clone());
         Ok(Self {
-            db,
-            sessions_tree,
+            dir: dir.to_path_buf(),
+            disk: RwLock::new(Some(disk)),
+            health,
             sessions: RwLock::new(sessions),
             admin: Mutex::new(()),
-            commit,
             search_threads: cores(),
             search_slots: Arc::new(Semaphore::new(search.max_concurrent.max(1))),
             search,
@@ -210,8 +230,10 @@ impl Store {
         if !(1..=65536).contains(&dim) {
             return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
         }
+        self.health.writable()?;
         let meta = {
             let _admin = self.admin.lock();
+            let disk = self.disk()?;
             let id = id.unwrap_or_else(|| {
                 let nanos =
                     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos();
@@ -229,12 +251,19 @@ impl Store {
                 std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64();
             let meta =
                 SessionMeta { id: id.clone(), name, created, dim, descriptor_id, storage, default_query, camera };
-            let session = Session::load(&self.db, meta.clone(), self.search)?;
-            self.sessions_tree.insert(id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises"))?;
+            let session = Session::load(&disk.db, meta.clone(), self.search)?;
+            self.note(disk.sessions.insert(id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises")))?;
             self.sessions.write().insert(id, Arc::new(session));
             meta
         };
-        self.durable().await?;
+        if let Err(e) = self.durable().await {
+            // Not acknowledged: the session goes (a reopen also drops it from disk if it is there).
+            self.sessions.write().remove(&meta.id);
+            if let Ok(disk) = self.disk() {
+                let _ = disk.sessions.remove(meta.id.as_bytes());
+            }
+            return Err(e);
+        }
         Ok(meta)
     }
 
@@ -250,15 +279,19 @@ impl Store {
 
     /// Deletes the session and its frames from disk and memory.
     pub async fn delete_session(&self, id: &str) -> Result<(), StoreError> {
+        self.health.writable()?;
         {
             let _admin = self.admin.lock();
+            let disk = self.disk()?;
             let removed = self.sessions.write().remove(id);
-            if removed.is_none() {
+            let Some(removed) = removed else {
                 return Err(StoreError::SessionNotFound(id.into()));
-            }
-            self.sessions_tree.remove(id.as_bytes())?;
-            self.db.drop_tree(session_tree_name(id))?;
-            self.db.drop_tree(features_tree_name(id))?;
+            };
+            // Its handles go first: sled drops a tree's contents once no handle holds it.
+            removed.trees.write().take();
+            self.note(disk.sessions.remove(id.as_bytes()))?;
+            self.note(disk.db.drop_tree(session_tree_name(id)))?;
+            self.note(disk.db.drop_tree(features_tree_name(id)))?;
         }
         self.durable().await
     }
@@ -267,48 +300,16 @@ impl Store {
     /// searchable right after its flush, on the flusher, whether or not the caller still waits:
     /// a dropped request cannot leave a frame on disk that the index does not know.
     pub async fn add_frames(&self, s: &Arc<Session>, frames: Vec<NewFrame>) -> Result<Vec<u64>, StoreError> {
+        self.health.writable()?;
         let mut prepared = Vec::with_capacity(frames.len());
         for mut f in frames {
             check_new_frame(s, &f)?;
             normalize(&mut f.descriptor)?;
             prepared.push(f);
         }
-        let mut written = Vec::with_capacity(prepared.len());
-        let mut added_bytes = 0u64;
-        for f in &prepared {
-            let header = FrameHeader {
-                robot_id: f.robot_id.clone(),
-                timestamp: f.timestamp,
-                pose: f.pose,
-                metadata: f.metadata.clone(),
-            };
-            let value = encode_frame(&header, &f.descriptor, s.meta.storage);
-            let id = match f.frame_id {
-                Some(id) => {
-                    if !s.insert_new(id, &value)? {
-                        // All or nothing: take back what this call already wrote.
-                        for &done in &written {
-                            s.remove(done)?;
-                        }
-                        return Err(StoreError::FrameExists(s.meta.id.clone(), id));
-                    }
-                    s.next_id.fetch_max(id + 1, Relaxed);
-                    id
-                }
-                None => loop {
-                    let id = s.next_id.fetch_add(1, Relaxed);
-                    if s.insert_new(id, &value)? {
-                        break id;
-                    }
-                },
-            };
-            if let Some(features) = &f.features {
-                s.features.insert(frame_key(id), features.as_slice())?;
-            }
-            added_bytes += (8 + value.len()) as u64;
-            written.push(id);
-        }
-        // No await between the inserts above and this: the publish is queued with them.
+        let written = self.note(Self::write_frames(s, &prepared));
+        let (written, added_bytes) = written?;
+        // No await between the inserts and this: the publish is queued with them.
         let (session, ids) = (s.clone(), written.clone());
         let publish: durability::AfterFlush = Box::new(move |flushed| match flushed {
             Ok(()) => {
@@ -320,14 +321,58 @@ impl Store {
                 session.bytes.fetch_add(added_bytes, Relaxed);
             }
             Err(_) => {
-                // Not acknowledged: take the frames back so they do not reappear after a restart.
+                // Not acknowledged: take the frames back so they do not reappear after a restart
+                // (if the database fails this too, a reopen drops what the index does not hold).
                 for &id in &ids {
                     let _ = session.remove(id);
                 }
             }
         });
-        self.commit.durable_then(Some(publish)).await.map_err(StoreError::Storage)?;
+        let flushed = self.disk()?.commit.durable_then(Some(publish));
+        flushed.await.map_err(not_durable)?;
         Ok(written)
+    }
+
+    /// Inserts the frames (all or none) and returns their ids and bytes; not yet durable.
+    fn write_frames(s: &Session, prepared: &[NewFrame]) -> Result<(Vec<u64>, u64), StoreError> {
+        let trees = s.trees()?;
+        let mut written = Vec::with_capacity(prepared.len());
+        let mut added_bytes = 0u64;
+        for f in prepared {
+            let header = FrameHeader {
+                robot_id: f.robot_id.clone(),
+                timestamp: f.timestamp,
+                pose: f.pose,
+                metadata: f.metadata.clone(),
+            };
+            let value = encode_frame(&header, &f.descriptor, s.meta.storage);
+            let id = match f.frame_id {
+                Some(id) => {
+                    if !insert_new(&trees.frames, id, &value)? {
+                        // All or nothing: take back what this call already wrote.
+                        for &done in &written {
+                            trees.frames.remove(frame_key(done))?;
+                            trees.features.remove(frame_key(done))?;
+                        }
+                        return Err(StoreError::FrameExists(s.meta.id.clone(), id));
+                    }
+                    s.next_id.fetch_max(id + 1, Relaxed);
+                    id
+                }
+                None => loop {
+                    let id = s.next_id.fetch_add(1, Relaxed);
+                    if insert_new(&trees.frames, id, &value)? {
+                        break id;
+                    }
+                },
+            };
+            if let Some(features) = &f.features {
+                trees.features.insert(frame_key(id), features.as_slice())?;
+            }
+            added_bytes += (8 + value.len()) as u64;
+            written.push(id);
+        }
+        Ok((written, added_bytes))
     }
 
     /// Ranked matches for a descriptor (normalised here), searched on a blocking thread of the
@@ -344,12 +389,35 @@ impl Store {
     }
 
     async fn durable(&self) -> Result<(), StoreError> {
-        self.commit.durable().await.map_err(StoreError::Storage)
+        let flushed = self.disk()?.commit.durable_then(None);
+        flushed.await.map_err(not_durable)
+    }
+
+    /// The open database, or Unavailable while a reopen replaces it (never waits for one).
+    fn disk(&self) -> Result<MappedRwLockReadGuard<'_, Disk>, StoreError> {
+        let guard = self.disk.try_read().ok_or_else(reopening)?;
+        RwLockReadGuard::try_map(guard, Option::as_ref).map_err(|_| reopening())
+    }
+
+    /// Passes a write's result on, first marking the store failed on an I/O error: sled fails
+    /// every write after one until a reopen.
+    fn note<T>(&self, r: Result<T, impl Into<StoreError>>) -> Result<T, StoreError> {
+        let r = r.map_err(Into::into);
+        if let Err(StoreError::Storage(e)) = &r {
+            self.health.fail(e);
+        }
+        r
+    }
+
+    /// Why writes are refused now, if they are (readiness reports it).
+    pub fn failure(&self) -> Option<String> {
+        self.health.failure()
     }
 
     /// Names of the session trees on disk (a deleted session's tree is gone).
     pub fn session_trees(&self) -> Vec<String> {
-        self.db
+        let Ok(disk) = self.disk() else { return Vec::new() };
+        disk.db
             .tree_names()
             .iter()
             .filter_map(|n| std::str::from_utf8(n).ok()?.strip_prefix("session/").map(str::to_string))
@@ -358,7 +426,7 @@ impl Store {
 
     /// Everything flushed (used at shutdown).
     pub fn flush(&self) -> Result<(), StoreError> {
-        self.db.flush()?;
+        self.disk()?.db.flush()?;
         Ok(())
     }
 }
@@ -407,7 +475,7 @@ impl Session {
         if !self.index.read().contains(frame_id) {
             return Err(StoreError::FrameNotFound(self.meta.id.clone(), frame_id));
         }
-        Ok(self.features.get(frame_key(frame_id))?)
+        Ok(self.trees()?.features.get(frame_key(frame_id))?)
     }
 
     /// A searchable frame's descriptor as the index holds it.
@@ -453,9 +521,16 @@ impl Session {
 
     /// Takes a frame that was never acknowledged back off disk.
     fn remove(&self, frame_id: u64) -> Result<(), StoreError> {
-        self.tree.remove(frame_key(frame_id))?;
-        self.features.remove(frame_key(frame_id))?;
+        let trees = self.trees()?;
+        trees.frames.remove(frame_key(frame_id))?;
+        trees.features.remove(frame_key(frame_id))?;
         Ok(())
+    }
+
+    /// The session's trees, or Unavailable while the store reopens (never waits for it).
+    fn trees(&self) -> Result<MappedRwLockReadGuard<'_, Trees>, StoreError> {
+        let guard = self.trees.try_read().ok_or_else(reopening)?;
+        RwLockReadGuard::try_map(guard, Option::as_ref).map_err(|_| reopening())
     }
 
     /// A stored frame: header and descriptor as stored (f16 sessions give f16-rounded values).
@@ -465,19 +540,18 @@ impl Session {
         if !self.index.read().contains(frame_id) {
             return Err(not_found());
         }
-        let v = self.tree.get(frame_key(frame_id))?.ok_or_else(not_found)?;
+        let v = self.trees()?.frames.get(frame_key(frame_id))?.ok_or_else(not_found)?;
         decode_frame(&v).map_err(StoreError::Storage)
     }
 
     fn load(db: &sled::Db, meta: SessionMeta, search: SearchConfig) -> Result<Self, StoreError> {
-        let tree = db.open_tree(session_tree_name(&meta.id))?;
-        let features = db.open_tree(features_tree_name(&meta.id))?;
+        let trees = Trees::open(db, &meta.id)?;
         let mut index = SessionIndex::new(meta.dim, meta.storage);
         if let Some(device) = search.device {
             index.search_on(device, search.device_min_rows);
         }
         let mut bytes = 0u64;
-        for entry in tree.iter() {
+        for entry in trees.frames.iter() {
             let (k, v) = entry?;
             let id = key_frame(&k).ok_or_else(|| StoreError::Storage("bad frame key".into()))?;
             let (h, d) = decode_frame(&v).map_err(StoreError::Storage)?;
@@ -487,17 +561,11 @@ impl Session {
         let next = index.max_frame_id().map_or(0, |m| m.saturating_add(1));
         Ok(Self {
             meta,
-            tree,
-            features,
+            trees: RwLock::new(Some(trees)),
             index: RwLock::new(index),
             next_id: AtomicU64::new(next),
             bytes: AtomicU64::new(bytes),
         })
-    }
-
-    /// Inserts only if the frame id is free (atomic in sled). False: the id is taken.
-    fn insert_new(&self, id: u64, value: &[u8]) -> Result<bool, StoreError> {
-        Ok(self.tree.compare_and_swap(frame_key(id), None as Option<&[u8]>, Some(value))?.is_ok())
     }
 
     /// Searches of this session answered on the search device (0 when searching on the host).
@@ -514,5 +582,16 @@ impl Session {
             bytes_on_disk: self.bytes.load(Relaxed),
             bytes_in_memory: index.memory_bytes(),
         }
+    }
+}
+
+/// Inserts only if the frame id is free (atomic in sled). False: the id is taken.
+fn insert_new(frames: &sled::Tree, id: u64, value: &[u8]) -> Result<bool, StoreError> {
+    Ok(frames.compare_and_swap(frame_key(id), None as Option<&[u8]>, Some(value))?.is_ok())
+}
+
+impl Trees {
+    fn open(db: &sled::Db, id: &str) -> Result<Self, StoreError> {
+        Ok(Self { frames: db.open_tree(session_tree_name(id))?, features: db.open_tree(features_tree_name(id))? })
     }
 }
