@@ -198,6 +198,47 @@ async fn stalled_connections_are_closed_and_the_limit_holds() {
     tokio::time::sleep(Duration::from_millis(200)).await;
     assert_eq!(reqwest::get(format!("{}/healthz", server.http_url())).await.unwrap().status(), 200);
 
+    // A stream whose answers are never read: the server holds at most 16 answers of it, the
+    // client's HTTP/2 window takes some more (2 MiB by default), then the server stops taking
+    // its frames and flow control stops the robot. Answers of 300 matches (a map of 300 frames)
+    // fill that window quickly. Everyone else is served as usual.
+    let mut c = LoopdClient::connect(server.grpc_url()).await.unwrap();
+    c.create_session(pb::CreateSessionRequest { id: "slow".into(), ..Default::default() }).await.unwrap();
+    let dim = server.dim().await;
+    let descriptor_frame = |i: usize| pb::AddFrameRequest {
+        session_id: "slow".into(),
+        robot_id: "slow".into(),
+        timestamp: Some(i as f64),
+        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+            values: (0..dim).map(|k| ((k * 31 + i * 7) % 97) as f32 - 48.0).collect(),
+        })),
+        options: Some(pb::QueryOptions { k: Some(300), verify: Some(false), ..Default::default() }),
+        ..Default::default()
+    };
+    for i in 0..300 {
+        c.add_frame(descriptor_frame(i)).await.unwrap();
+    }
+    let (tx, rx) = tokio::sync::mpsc::channel(1);
+    let _unread = c.stream_frames(tokio_stream::wrappers::ReceiverStream::new(rx)).await.unwrap();
+    let mut sent = 0;
+    for i in 300..3000 {
+        match tokio::time::timeout(Duration::from_millis(300), tx.send(descriptor_frame(i))).await {
+            Ok(Ok(())) => sent += 1,
+            _ => break,
+        }
+    }
+    let mut other = LoopdClient::connect(server.grpc_url()).await.unwrap();
+    let t = Instant::now();
+    let stored = other.get_session(pb::GetSessionRequest { id: "slow".into() }).await.unwrap().into_inner().frames;
+    eprintln!(
+        "a stream never read: the robot could send {sent} frames ({} stored) before flow control stopped it; \
+         another client answered in {:.2?}",
+        stored - 300,
+        t.elapsed()
+    );
+    assert!(sent < 2700, "the server kept taking frames whose answers nobody reads");
+    assert!(stored - 300 <= sent as u64);
+
     // A gRPC channel idle for longer than the idle deadline stays usable.
     let mut c = LoopdClient::connect(server.grpc_url()).await.unwrap();
     c.list_sessions(pb::ListSessionsRequest {}).await.unwrap();

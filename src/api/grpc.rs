@@ -126,6 +126,16 @@ fn matches_to_pb(m: Vec<LoopMatch>) -> Vec<pb::Match> {
         .collect()
 }
 
+/// An AddFrame request's bytes as the gRPC API reads them: decoded, converted and validated
+/// (the fuzz target's entry; tonic decodes with the same prost code).
+pub fn parse_add_frame(bytes: &[u8]) -> Result<(String, FrameInput, QueryOverrides), ApiError> {
+    let r = <pb::AddFrameRequest as prost::Message>::decode(bytes)
+        .map_err(|e| ApiError::InvalidArgument(format!("not an AddFrameRequest: {e}")))?;
+    let (session, f, opts) = frame_input(r)?;
+    f.validate(&opts)?;
+    Ok((session, f, opts))
+}
+
 fn frame_input(r: pb::AddFrameRequest) -> Result<(String, FrameInput, QueryOverrides), ApiError> {
     let content = match r.content {
         Some(pb::add_frame_request::Content::Image(b)) => Content::Image(b),

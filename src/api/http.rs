@@ -193,6 +193,14 @@ fn fields_from_text(map: HashMap<String, String>, image: Option<Bytes>) -> Resul
     Ok(f)
 }
 
+/// A frame request as `POST /v1/sessions/{id}/frames` reads it (JSON, multipart or raw body),
+/// converted and validated: the fuzz target's entry.
+pub async fn parse_frame_request(req: Request) -> Result<(FrameInput, QueryOverrides), ApiError> {
+    let (f, opts) = frame_input(read_fields(req).await?)?;
+    f.validate(&opts)?;
+    Ok((f, opts))
+}
+
 async fn read_fields(req: Request) -> Result<FrameFields, ApiError> {
     if content_type(&req).starts_with("application/json") {
         let Json(f) = Json::<FrameFields>::from_request(req, &()).await.map_err(json_error)?;

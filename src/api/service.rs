@@ -157,6 +157,13 @@ impl FrameInput {
         Ok(t)
     }
 
+    /// Everything a request carries checked, as the service does before a frame takes a model
+    /// slot (the fuzz targets' entry).
+    pub fn validate(&self, opts: &QueryOverrides) -> Result<(), ApiError> {
+        self.check()?;
+        opts.apply(&LoopQuery::default()).validate().map_err(ApiError::InvalidArgument)
+    }
+
     /// The stored frame, once its descriptor (and the image's features) are known.
     fn into_new_frame(self, timestamp: f64, prepared: Prepared) -> NewFrame {
         NewFrame {

@@ -52,6 +52,11 @@ impl GroundTruth {
     /// CSV: a header line, then `query,ref` pairs or `query,ref ref ref` lists (0-based).
     pub fn from_csv(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        Self::parse_csv(&text, path)
+    }
+
+    /// As [`GroundTruth::from_csv`], from the file's text (`path` names it in errors).
+    pub fn parse_csv(text: &str, path: &Path) -> Result<Self> {
         let mut gt = GroundTruth::default();
         for (n, line) in text.lines().enumerate() {
             let line = line.trim();
