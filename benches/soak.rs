@@ -136,8 +136,15 @@ async fn robot(
 async fn churn(url: String, sessions: usize, every: Duration, stop: Arc<AtomicBool>) {
     let Ok(mut c) = LoopdClient::connect(url).await else { return };
     let mut k = 0;
+    let start = Instant::now();
+    let mut next = every;
     while !stop.load(Ordering::Relaxed) {
-        tokio::time::sleep(every).await;
+        // Short naps: the run's end is noticed at once.
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        if start.elapsed() < next {
+            continue;
+        }
+        next += every;
         let id = format!("soak-{}", k % sessions);
         let _ = c.delete_session(pb::DeleteSessionRequest { id: id.clone() }).await;
         let _ = c.create_session(pb::CreateSessionRequest { id, ..Default::default() }).await;

@@ -3,6 +3,7 @@
 //! Layers, dependencies pointing one way: `api` -> `engine` -> `model`, `store`; `verify` (local
 //! features and geometry) is used by `api` and `eval`; `train` (heads, whitening) uses `eval`.
 pub mod api;
+pub mod auth;
 pub mod cli;
 pub mod engine;
 pub mod eval;

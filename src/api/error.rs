@@ -1,4 +1,5 @@
 //! One error type for both APIs, with what it means in gRPC and in HTTP.
+use crate::auth::tenants::AuthError;
 use crate::engine::EngineError;
 use crate::model::preprocess::ImageError;
 use crate::store::StoreError;
@@ -31,6 +32,25 @@ pub enum ApiError {
     FailedPrecondition(String),
     #[error("{0}")]
     Internal(String),
+    /// No key, or one that is malformed, unknown or revoked.
+    #[error("{0}")]
+    Unauthenticated(String),
+    /// A valid key that may not use the route (a tenant's key on an admin route).
+    #[error("{0}")]
+    PermissionDenied(String),
+}
+
+impl From<AuthError> for ApiError {
+    fn from(e: AuthError) -> Self {
+        let msg = e.to_string();
+        match e {
+            AuthError::Unauthenticated(_) => ApiError::Unauthenticated(msg),
+            AuthError::PermissionDenied(_) => ApiError::PermissionDenied(msg),
+            AuthError::InvalidArgument(_) => ApiError::InvalidArgument(msg),
+            AuthError::NotFound(_) => ApiError::NotFound(msg),
+            AuthError::Store(e) => e.into(),
+        }
+    }
 }
 
 impl From<EngineError> for ApiError {
@@ -72,6 +92,8 @@ impl ApiError {
             ApiError::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
             ApiError::FailedPrecondition(_) => StatusCode::CONFLICT,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+            ApiError::Unauthenticated(_) => StatusCode::UNAUTHORIZED,
+            ApiError::PermissionDenied(_) => StatusCode::FORBIDDEN,
         }
     }
 
@@ -101,6 +123,8 @@ impl ApiError {
             ApiError::Unavailable(_) => tonic::Status::unavailable(msg),
             ApiError::FailedPrecondition(_) => tonic::Status::failed_precondition(msg),
             ApiError::Internal(_) => tonic::Status::internal(msg),
+            ApiError::Unauthenticated(_) => tonic::Status::unauthenticated(msg),
+            ApiError::PermissionDenied(_) => tonic::Status::permission_denied(msg),
         }
     }
 }
@@ -122,6 +146,9 @@ impl IntoResponse for ApiError {
             // Overload and outages pass: a client knows when to come back.
             ApiError::Overloaded(_) | ApiError::Unavailable(_) => {
                 (status, [(axum::http::header::RETRY_AFTER, RETRY_AFTER_SECS)], body).into_response()
+            }
+            ApiError::Unauthenticated(_) => {
+                (status, [(axum::http::header::WWW_AUTHENTICATE, "Bearer")], body).into_response()
             }
             _ => (status, body).into_response(),
         }

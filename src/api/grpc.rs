@@ -1,12 +1,14 @@
 //! gRPC (tonic): `proto/loopd/v1/loopd.proto` translated onto `LoopService`.
 use super::error::ApiError;
 use super::service::{Content, CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
+use crate::auth::{Auth, Caller};
 use crate::pb;
 use crate::store::query::{Pose, Scope};
 use crate::store::record::Camera;
 use crate::store::{SessionInfo, Storage};
 use crate::verify::geometric::Verification;
 use std::pin::Pin;
+use std::sync::Arc;
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
@@ -165,11 +167,31 @@ fn frame_input(r: pb::AddFrameRequest) -> Result<(String, FrameInput, QueryOverr
     Ok((r.session_id, f, opts))
 }
 
+/// The caller the authentication interceptor put on the request (see `server.rs`).
+fn caller<T>(req: &Request<T>) -> Result<Caller, Status> {
+    req.extensions()
+        .get::<Caller>()
+        .cloned()
+        .ok_or_else(|| Status::unauthenticated("no caller: request not authenticated"))
+}
+
+/// The gRPC interceptor: the key in the `authorization` metadata (`Bearer <key>`) names the
+/// caller; the health service stays open (it is not intercepted).
+pub fn authenticate(auth: Arc<Auth>) -> impl Fn(Request<()>) -> Result<Request<()>, Status> + Clone {
+    move |mut req: Request<()>| {
+        let header = req.metadata().get("authorization").map(|v| v.as_bytes());
+        let caller = auth.authenticate(header).map_err(ApiError::from)?;
+        req.extensions_mut().insert(caller);
+        Ok(req)
+    }
+}
+
 type FrameStream = Pin<Box<dyn Stream<Item = Result<pb::AddAndQueryResponse, Status>> + Send>>;
 
 #[tonic::async_trait]
 impl pb::loopd_server::Loopd for GrpcApi {
     async fn create_session(&self, req: Request<pb::CreateSessionRequest>) -> Result<Response<pb::Session>, Status> {
+        let caller = caller(&req)?;
         let r = req.into_inner();
         let storage = match pb::Storage::try_from(r.storage) {
             Ok(pb::Storage::F32) => Storage::F32,
@@ -183,19 +205,21 @@ impl pb::loopd_server::Loopd for GrpcApi {
             default_query: overrides(r.default_query)?,
             camera: camera(r.camera)?,
         };
-        Ok(Response::new(session_to_pb(self.service.create_session(create).await?)))
+        Ok(Response::new(session_to_pb(self.service.scoped(caller).create_session(create).await?)))
     }
 
     async fn get_session(&self, req: Request<pb::GetSessionRequest>) -> Result<Response<pb::Session>, Status> {
-        Ok(Response::new(session_to_pb(self.service.session(&req.into_inner().id)?)))
+        let caller = caller(&req)?;
+        Ok(Response::new(session_to_pb(self.service.scoped(caller).session(&req.into_inner().id)?)))
     }
 
     async fn list_sessions(
         &self,
-        _: Request<pb::ListSessionsRequest>,
+        req: Request<pb::ListSessionsRequest>,
     ) -> Result<Response<pb::ListSessionsResponse>, Status> {
+        let caller = caller(&req)?;
         Ok(Response::new(pb::ListSessionsResponse {
-            sessions: self.service.list_sessions().into_iter().map(session_to_pb).collect(),
+            sessions: self.service.scoped(caller).list_sessions().into_iter().map(session_to_pb).collect(),
         }))
     }
 
@@ -203,16 +227,19 @@ impl pb::loopd_server::Loopd for GrpcApi {
         &self,
         req: Request<pb::DeleteSessionRequest>,
     ) -> Result<Response<pb::DeleteSessionResponse>, Status> {
-        self.service.delete_session(&req.into_inner().id).await?;
+        let caller = caller(&req)?;
+        self.service.scoped(caller).delete_session(&req.into_inner().id).await?;
         Ok(Response::new(pb::DeleteSessionResponse {}))
     }
 
     async fn add_frame(&self, req: Request<pb::AddFrameRequest>) -> Result<Response<pb::AddFrameResponse>, Status> {
+        let caller = caller(&req)?;
         let (session, f, _) = frame_input(req.into_inner())?;
-        Ok(Response::new(pb::AddFrameResponse { frame_id: self.service.add_frame(&session, f).await? }))
+        Ok(Response::new(pb::AddFrameResponse { frame_id: self.service.scoped(caller).add_frame(&session, f).await? }))
     }
 
     async fn query(&self, req: Request<pb::QueryRequest>) -> Result<Response<pb::QueryResponse>, Status> {
+        let caller = caller(&req)?;
         let r = req.into_inner();
         let target = match r.content {
             Some(pb::query_request::Content::Image(b)) => QueryTarget::Content(Content::Image(b)),
@@ -220,8 +247,8 @@ impl pb::loopd_server::Loopd for GrpcApi {
             Some(pb::query_request::Content::FrameId(id)) => QueryTarget::Frame(id),
             None => return Err(Status::invalid_argument("a query needs an image, a descriptor or a frame_id")),
         };
-        let m =
-            self.service.query(&r.session_id, Some(r.robot_id), r.timestamp, target, &overrides(r.options)?).await?;
+        let opts = overrides(r.options)?;
+        let m = self.service.scoped(caller).query(&r.session_id, Some(r.robot_id), r.timestamp, target, &opts).await?;
         Ok(Response::new(pb::QueryResponse { matches: matches_to_pb(m) }))
     }
 
@@ -229,8 +256,9 @@ impl pb::loopd_server::Loopd for GrpcApi {
         &self,
         req: Request<pb::AddFrameRequest>,
     ) -> Result<Response<pb::AddAndQueryResponse>, Status> {
+        let caller = caller(&req)?;
         let (session, f, opts) = frame_input(req.into_inner())?;
-        let (frame_id, m) = self.service.add_and_query(&session, f, &opts).await?;
+        let (frame_id, m) = self.service.scoped(caller).add_and_query(&session, f, &opts).await?;
         Ok(Response::new(pb::AddAndQueryResponse { frame_id, matches: matches_to_pb(m), ..Default::default() }))
     }
 
@@ -240,6 +268,7 @@ impl pb::loopd_server::Loopd for GrpcApi {
         &self,
         req: Request<Streaming<pb::AddFrameRequest>>,
     ) -> Result<Response<FrameStream>, Status> {
+        let caller = caller(&req)?;
         let mut inbound = req.into_inner();
         let service = self.service.clone();
         let mut shutdown = self.shutdown.clone();
@@ -267,12 +296,16 @@ impl pb::loopd_server::Loopd for GrpcApi {
                     }
                     Ok(r) => match frame_input(r) {
                         Err(e) => failed(e),
-                        Ok((session, f, opts)) => match service.add_and_query(&session, f, &opts).await {
-                            Ok((frame_id, m)) => {
-                                pb::AddAndQueryResponse { frame_id, matches: matches_to_pb(m), ..Default::default() }
+                        Ok((session, f, opts)) => {
+                            match service.scoped(caller.clone()).add_and_query(&session, f, &opts).await {
+                                Ok((frame_id, m)) => pb::AddAndQueryResponse {
+                                    frame_id,
+                                    matches: matches_to_pb(m),
+                                    ..Default::default()
+                                },
+                                Err(e) => failed(e),
                             }
-                            Err(e) => failed(e),
-                        },
+                        }
                     },
                 };
                 if tx.send(Ok(reply)).await.is_err() {

@@ -3,6 +3,7 @@
 use super::error::ApiError;
 use super::jobs::{JobStatus, SequenceRequest};
 use super::service::{Content, CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
+use crate::auth::{Auth, Caller};
 use crate::model::network::Variant;
 use crate::store::query::Pose;
 use crate::store::SessionInfo;
@@ -11,6 +12,7 @@ use axum::extract::{DefaultBodyLimit, FromRequest, Multipart, Path, Query, Reque
 use axum::http::{header, StatusCode};
 use axum::response::IntoResponse;
 use axum::routing::{get, post};
+use axum::Extension;
 use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -18,6 +20,7 @@ use std::sync::Arc;
 
 pub struct AppState {
     pub service: LoopService,
+    pub auth: Arc<Auth>,
 }
 
 /// `max_body_bytes` bounds sequence uploads only; every other route takes at most one image
@@ -40,8 +43,11 @@ pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
         .route("/v1/sessions/{id}/query", post(query))
         .route("/v1/sessions/{id}/add_and_query", post(add_and_query))
         .route("/v1/jobs/{job_id}", get(job_status))
+        .route("/v1/tenants", post(create_tenant).get(list_tenants))
+        .route("/v1/tenants/{name}", axum::routing::delete(revoke_tenant))
         .layer(DefaultBodyLimit::max(frame_body))
         .merge(sequences)
+        .layer(axum::middleware::from_fn_with_state(state.clone(), authenticate))
         .with_state(state)
 }
 
@@ -113,10 +119,11 @@ async fn embed(
 
 async fn create_session(
     State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
     body: Result<Json<CreateSession>, axum::extract::rejection::JsonRejection>,
 ) -> Result<(StatusCode, Json<SessionInfo>), ApiError> {
     let Json(req) = body.map_err(json_error)?;
-    Ok((StatusCode::CREATED, Json(s.service.create_session(req).await?)))
+    Ok((StatusCode::CREATED, Json(s.service.scoped(caller).create_session(req).await?)))
 }
 
 #[derive(Serialize)]
@@ -124,16 +131,24 @@ struct SessionList {
     sessions: Vec<SessionInfo>,
 }
 
-async fn list_sessions(State(s): State<Arc<AppState>>) -> Json<SessionList> {
-    Json(SessionList { sessions: s.service.list_sessions() })
+async fn list_sessions(State(s): State<Arc<AppState>>, Extension(caller): Extension<Caller>) -> Json<SessionList> {
+    Json(SessionList { sessions: s.service.scoped(caller).list_sessions() })
 }
 
-async fn get_session(State(s): State<Arc<AppState>>, Path(id): Path<String>) -> Result<Json<SessionInfo>, ApiError> {
-    Ok(Json(s.service.session(&id)?))
+async fn get_session(
+    State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Json<SessionInfo>, ApiError> {
+    Ok(Json(s.service.scoped(caller).session(&id)?))
 }
 
-async fn delete_session(State(s): State<Arc<AppState>>, Path(id): Path<String>) -> Result<StatusCode, ApiError> {
-    s.service.delete_session(&id).await?;
+async fn delete_session(
+    State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    s.service.scoped(caller).delete_session(&id).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -148,10 +163,11 @@ struct FrameView {
 
 async fn get_frame(
     State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
     Path((id, frame_id)): Path<(String, String)>,
 ) -> Result<Json<FrameView>, ApiError> {
     let frame_id = parse_u64("frame_id", &frame_id)?;
-    let h = s.service.frame(&id, frame_id)?;
+    let h = s.service.scoped(caller).frame(&id, frame_id)?;
     Ok(Json(FrameView { frame_id, robot_id: h.robot_id, timestamp: h.timestamp, pose: h.pose, metadata: h.metadata }))
 }
 
@@ -309,11 +325,12 @@ struct AddFrameResponse {
 
 async fn add_frame(
     State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     req: Request,
 ) -> Result<(StatusCode, Json<AddFrameResponse>), ApiError> {
     let (f, _) = frame_input(read_fields(req).await?)?;
-    Ok((StatusCode::CREATED, Json(AddFrameResponse { frame_id: s.service.add_frame(&id, f).await? })))
+    Ok((StatusCode::CREATED, Json(AddFrameResponse { frame_id: s.service.scoped(caller).add_frame(&id, f).await? })))
 }
 
 #[derive(Serialize)]
@@ -323,6 +340,7 @@ struct QueryResponse {
 
 async fn query(
     State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     req: Request,
 ) -> Result<Json<QueryResponse>, ApiError> {
@@ -332,7 +350,9 @@ async fn query(
         _ => QueryTarget::Content(content(&mut f)?),
     };
     let opts = f.options.unwrap_or_default();
-    Ok(Json(QueryResponse { matches: s.service.query(&id, f.robot_id, f.timestamp, target, &opts).await? }))
+    Ok(Json(QueryResponse {
+        matches: s.service.scoped(caller).query(&id, f.robot_id, f.timestamp, target, &opts).await?,
+    }))
 }
 
 #[derive(Serialize)]
@@ -343,11 +363,12 @@ struct AddAndQueryResponse {
 
 async fn add_and_query(
     State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     req: Request,
 ) -> Result<Json<AddAndQueryResponse>, ApiError> {
     let (f, opts) = frame_input(read_fields(req).await?)?;
-    let (frame_id, matches) = s.service.add_and_query(&id, f, &opts).await?;
+    let (frame_id, matches) = s.service.scoped(caller).add_and_query(&id, f, &opts).await?;
     Ok(Json(AddAndQueryResponse { frame_id, matches }))
 }
 
@@ -361,17 +382,96 @@ struct JobCreated {
 /// order with `order=name`), or one tar archive (`archive` part or an application/x-tar body).
 async fn start_sequence(
     State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     req: Request,
 ) -> Result<(StatusCode, Json<JobCreated>), ApiError> {
-    s.service.session(&id)?;
+    let scoped = s.service.scoped(caller);
+    scoped.session(&id)?;
     let form = read_form(req, &["image", "archive"]).await?;
     let files = form.files.into_iter().map(|f| (f.part, f.file_name, f.data)).collect();
     let seq = SequenceRequest::from_form(form.fields, files, form.body)?;
-    let job_id = s.service.start_sequence(&id, seq).await?;
+    let job_id = scoped.start_sequence(&id, seq).await?;
     Ok((StatusCode::ACCEPTED, Json(JobCreated { status_url: format!("/v1/jobs/{job_id}"), job_id })))
 }
 
-async fn job_status(State(s): State<Arc<AppState>>, Path(job_id): Path<String>) -> Result<Json<JobStatus>, ApiError> {
-    Ok(Json(s.service.job(&job_id)?))
+async fn job_status(
+    State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
+    Path(job_id): Path<String>,
+) -> Result<Json<JobStatus>, ApiError> {
+    Ok(Json(s.service.scoped(caller).job(&job_id)?))
+}
+
+/// Who is calling, from `Authorization: Bearer <key>`, before any route runs: health and
+/// readiness are open; metrics and tenant routes take the admin key; everything else a tenant's
+/// key (or the admin's, acting for the default tenant). Keys in the URL are refused (they end up
+/// in logs and browser histories).
+async fn authenticate(
+    State(s): State<Arc<AppState>>,
+    mut req: Request,
+    next: axum::middleware::Next,
+) -> Result<axum::response::Response, ApiError> {
+    let path = req.uri().path();
+    if path == "/healthz" || path == "/readyz" {
+        return Ok(next.run(req).await);
+    }
+    let tenants = path.starts_with("/v1/tenants");
+    let admin_only = path == "/metrics" || tenants;
+    let in_url = req.uri().query().is_some_and(|q| {
+        q.split('&').any(|kv| {
+            let name = kv.split('=').next().unwrap_or("").to_ascii_lowercase();
+            ["key", "api_key", "apikey", "token", "access_token", "authorization"].contains(&name.as_str())
+        })
+    });
+    if in_url && s.auth.enabled() {
+        return Err(ApiError::Unauthenticated("send the key in the Authorization header, never in the URL".into()));
+    }
+    let caller = s.auth.authenticate(req.headers().get(header::AUTHORIZATION).map(|v| v.as_bytes()))?;
+    if admin_only {
+        s.auth.require_admin(&caller, tenants)?;
+    }
+    req.extensions_mut().insert(caller);
+    Ok(next.run(req).await)
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct NewTenant {
+    name: String,
+    #[serde(default)]
+    limits: crate::auth::Limits,
+}
+
+#[derive(Serialize)]
+struct TenantCreated {
+    #[serde(flatten)]
+    tenant: crate::auth::TenantInfo,
+    /// Shown once; only its hash is kept.
+    key: String,
+}
+
+async fn create_tenant(
+    State(s): State<Arc<AppState>>,
+    body: Result<Json<NewTenant>, axum::extract::rejection::JsonRejection>,
+) -> Result<(StatusCode, Json<TenantCreated>), ApiError> {
+    let Json(t) = body.map_err(json_error)?;
+    let (tenant, key) = s.auth.create_tenant(&t.name, t.limits).await?;
+    Ok((StatusCode::CREATED, Json(TenantCreated { tenant, key })))
+}
+
+#[derive(Serialize)]
+struct TenantList {
+    tenants: Vec<crate::auth::TenantInfo>,
+}
+
+async fn list_tenants(State(s): State<Arc<AppState>>) -> Json<TenantList> {
+    Json(TenantList { tenants: s.auth.list() })
+}
+
+async fn revoke_tenant(
+    State(s): State<Arc<AppState>>,
+    Path(name): Path<String>,
+) -> Result<Json<crate::auth::TenantInfo>, ApiError> {
+    Ok(Json(s.auth.revoke(&name).await?))
 }

@@ -6,3 +6,5 @@ pub mod http;
 pub mod jobs;
 pub mod server;
 pub mod service;
+pub mod tenancy;
+pub mod tls;

@@ -1,8 +1,10 @@
 //! One process, both APIs: gRPC (tonic) and HTTP (axum) over one engine and one store.
 use super::conn::{accept, ConnLimits};
-use super::grpc::{GrpcApi, LoopdServer};
+use super::grpc::{self, GrpcApi, LoopdServer};
 use super::http::{router, AppState};
 use super::service::LoopService;
+use super::tls::{Conn, Tls, TlsFiles};
+use crate::auth::{Auth, AuthConfig};
 use crate::engine::{Engine, EngineConfig};
 use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
@@ -18,6 +20,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::Semaphore;
+use tonic::service::interceptor::InterceptedService;
 use tonic_health::ServingStatus;
 
 #[derive(Clone, Debug)]
@@ -40,6 +43,12 @@ pub struct ServerConfig {
     /// How often a store whose writes failed (a full disk) tries to reopen.
     pub storage_retry: std::time::Duration,
     pub connections: ConnectionConfig,
+    /// The admin key, if any (keys are required once it is set or any tenant exists).
+    pub auth: AuthConfig,
+    /// Listen beyond loopback without keys (refused otherwise).
+    pub insecure: bool,
+    /// TLS on both servers (certificate, key, optional client CA for mTLS).
+    pub tls: Option<TlsFiles>,
 }
 
 /// What one client connection may hold (see `conn.rs`).
@@ -85,6 +94,9 @@ impl ServerConfig {
             shutdown_grace: std::time::Duration::from_secs(10),
             storage_retry: std::time::Duration::from_secs(2),
             connections: ConnectionConfig::default(),
+            auth: AuthConfig::default(),
+            insecure: false,
+            tls: None,
         }
     }
 }
@@ -106,6 +118,41 @@ impl RunningServer {
                 .with_context(|| format!("opening store in {}", cfg.data_dir.display()))?,
         );
         let engine = Engine::start(model, cfg.engine.clone(), cfg.limits)?;
+        let auth = Arc::new(Auth::new(&cfg.auth, store.clone())?);
+        let tls = match &cfg.tls {
+            None => None,
+            Some(files) => Some(Arc::new(Tls::load(files.clone())?)),
+        };
+        if let Some(tls) = &tls {
+            // Registered now, before the first connection: SIGHUP then never ends the process.
+            let mut hangups = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup())?;
+            let tls = tls.clone();
+            tokio::spawn(async move {
+                while hangups.recv().await.is_some() {
+                    match tls.reload() {
+                        Ok(()) => {
+                            tracing::info!("TLS certificate and key reloaded (SIGHUP); open connections keep theirs")
+                        }
+                        Err(e) => tracing::error!(error = %e, "TLS reload failed: the previous certificate stays"),
+                    }
+                }
+            });
+        }
+        let loopback = cfg.grpc_addr.ip().is_loopback() && cfg.http_addr.ip().is_loopback();
+        if !auth.enabled() && !loopback {
+            if !cfg.insecure {
+                anyhow::bail!(
+                    "refusing to listen on {} / {} without keys: set an admin key (LOOPD_ADMIN_KEY_FILE or \
+                     LOOPD_ADMIN_KEY) and create tenants, or pass --insecure to serve anyone who connects",
+                    cfg.grpc_addr,
+                    cfg.http_addr
+                );
+            }
+            tracing::warn!(
+                "INSECURE: no keys required on a non-loopback address; anyone who connects can read, \
+                            write and delete every session"
+            );
+        }
         let service = LoopService::new(engine, store, cfg.max_jobs, cfg.verify.clone());
         let (shutdown, rx) = tokio::sync::watch::channel(false);
 
@@ -117,12 +164,12 @@ impl RunningServer {
             .with_context(|| format!("binding gRPC {}", cfg.grpc_addr))?;
         let (http_addr, grpc_addr) = (http.local_addr()?, grpc.local_addr()?);
 
-        let state = Arc::new(AppState { service: service.clone() });
+        let state = Arc::new(AppState { service: service.clone(), auth: auth.clone() });
         let app = router(state, cfg.max_body_bytes).layer(tower_http::timeout::TimeoutLayer::with_status_code(
             axum::http::StatusCode::REQUEST_TIMEOUT,
             cfg.connections.request_timeout,
         ));
-        let http_task = tokio::spawn(serve_http(http, app, cfg.connections, rx.clone()));
+        let http_task = tokio::spawn(serve_http(http, app, cfg.connections, tls.clone(), rx.clone()));
 
         let (health, health_service) = tonic_health::server::health_reporter();
         health.set_serving::<LoopdServer<GrpcApi>>().await;
@@ -133,16 +180,15 @@ impl RunningServer {
         let api = LoopdServer::new(GrpcApi { service: service.clone(), shutdown: rx.clone() })
             .max_decoding_message_size(cfg.limits.max_bytes + 64 * 1024)
             .max_encoding_message_size(64 << 20);
+        // Keys on everything but health (reflection describes the API: a key's business too).
+        let api = InterceptedService::new(api, grpc::authenticate(auth.clone()));
+        let reflection = InterceptedService::new(reflection, grpc::authenticate(auth.clone()));
         let watcher = tokio::spawn(watch_storage(service.store.clone(), health, cfg.storage_retry, rx.clone()));
         let mut grpc_rx = rx;
         let c = cfg.connections;
         // The preface is 24 bytes; a gRPC channel may then idle (keep-alive pings check the peer).
         let limits = ConnLimits { opening: c.header_timeout, opening_bytes: 24, idle: None };
-        let slots = Arc::new(Semaphore::new(c.max_connections.max(1)));
-        let incoming = futures::stream::unfold((grpc, slots), move |(l, slots)| async move {
-            let conn = accept(&l, limits, &slots).await;
-            Some((Ok::<_, std::io::Error>(conn), (l, slots)))
-        });
+        let incoming = grpc_incoming(grpc, limits, c, tls.clone(), grpc_rx.clone());
         let grpc_task = tokio::spawn(async move {
             tonic::transport::Server::builder()
                 .http2_keepalive_interval(Some(c.idle_timeout / 2))
@@ -234,6 +280,48 @@ async fn watch_storage(
     }
 }
 
+/// A connection made usable: the TLS handshake (if on) within the header deadline.
+async fn open(io: super::conn::Guarded, tls: Option<&Tls>, grpc: bool, deadline: Duration) -> Option<Conn> {
+    match tokio::time::timeout(deadline, Conn::open(io, tls, grpc)).await {
+        Ok(Ok(conn)) => Some(conn),
+        Ok(Err(e)) => {
+            tracing::debug!(error = %e, "TLS handshake failed");
+            None
+        }
+        Err(_) => {
+            tracing::debug!("TLS handshake not done within the header deadline");
+            None
+        }
+    }
+}
+
+/// gRPC's connections: accepted under the limit, handshaken off the accept loop, until `stop`.
+fn grpc_incoming(
+    listener: tokio::net::TcpListener,
+    limits: ConnLimits,
+    c: ConnectionConfig,
+    tls: Option<Arc<Tls>>,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) -> tokio_stream::wrappers::ReceiverStream<std::io::Result<Conn>> {
+    let (tx, rx) = tokio::sync::mpsc::channel(64);
+    let slots = Arc::new(Semaphore::new(c.max_connections.max(1)));
+    tokio::spawn(async move {
+        loop {
+            let io = tokio::select! {
+                _ = stop.wait_for(|s| *s) => break,
+                io = accept(&listener, limits, &slots) => io,
+            };
+            let (tx, tls) = (tx.clone(), tls.clone());
+            tokio::spawn(async move {
+                if let Some(conn) = open(io, tls.as_deref(), true, c.header_timeout).await {
+                    let _ = tx.send(Ok(conn)).await;
+                }
+            });
+        }
+    });
+    tokio_stream::wrappers::ReceiverStream::new(rx)
+}
+
 /// The HTTP server: our own accept loop (axum::serve sets no header or idle deadline), hyper's
 /// HTTP/1 and HTTP/2, graceful shutdown once `stop` turns true (connections finish their
 /// request; the caller bounds the wait).
@@ -241,6 +329,7 @@ async fn serve_http(
     listener: tokio::net::TcpListener,
     app: axum::Router,
     c: ConnectionConfig,
+    tls: Option<Arc<Tls>>,
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) -> Result<()> {
     let limits = ConnLimits { opening: c.header_timeout, opening_bytes: 1, idle: Some(c.idle_timeout) };
@@ -249,13 +338,15 @@ async fn serve_http(
     builder.http1().timer(TokioTimer::new()).header_read_timeout(c.header_timeout);
     let graceful = hyper_util::server::graceful::GracefulShutdown::new();
     loop {
-        let conn = tokio::select! {
+        let io = tokio::select! {
             _ = stop.wait_for(|s| *s) => break,
-            conn = accept(&listener, limits, &slots) => conn,
+            io = accept(&listener, limits, &slots) => io,
         };
-        let service = TowerToHyperService::new(app.clone());
-        let conn = graceful.watch(builder.serve_connection_with_upgrades(TokioIo::new(conn), service).into_owned());
+        let (service, builder, watcher, tls) =
+            (TowerToHyperService::new(app.clone()), builder.clone(), graceful.watcher(), tls.clone());
         tokio::spawn(async move {
+            let Some(conn) = open(io, tls.as_deref(), false, c.header_timeout).await else { return };
+            let conn = watcher.watch(builder.serve_connection_with_upgrades(TokioIo::new(conn), service).into_owned());
             if let Err(e) = conn.await {
                 tracing::debug!(error = %e, "HTTP connection ended");
             }

@@ -4,6 +4,7 @@ mod embed;
 mod eval;
 mod images;
 mod serve;
+mod tenant;
 mod train;
 mod weights;
 
@@ -41,6 +42,8 @@ pub enum Command {
     Eval(eval::EvalArgs),
     /// Train the attention/fusion heads (and whitening) on real data; writes a heads file.
     Train(train::TrainArgs),
+    /// Tenants and their API keys, through a running server (admin key).
+    Tenant(tenant::TenantArgs),
 }
 
 /// The heads shipped in the repository (trained on the real data here, see docs/training.md).
@@ -130,5 +133,6 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Embed(a) => embed::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Train(a) => train::run(a),
+        Command::Tenant(a) => tenant::run(a),
     }
 }

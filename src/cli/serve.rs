@@ -1,5 +1,7 @@
 use super::ModelArgs;
 use crate::api::server::{ConnectionConfig, RunningServer, ServerConfig};
+use crate::api::tls::TlsFiles;
+use crate::auth::AuthConfig;
 use crate::engine::EngineConfig;
 use crate::model::device::parse_device;
 use crate::model::preprocess::ImageLimits;
@@ -89,6 +91,22 @@ pub struct ServeArgs {
     /// Open connections per server (HTTP and gRPC each); more are closed at once.
     #[arg(long, env = "LOOPD_MAX_CONNECTIONS", default_value_t = 1024)]
     pub max_connections: usize,
+    /// A file holding the admin key (manages tenants; `LOOPD_ADMIN_KEY` gives it directly). Once
+    /// it is set or any tenant exists, every request needs a key.
+    #[arg(long, env = "LOOPD_ADMIN_KEY_FILE")]
+    pub admin_key_file: Option<PathBuf>,
+    /// TLS certificate chain (PEM) for both servers; with --tls-key. Reloaded on SIGHUP.
+    #[arg(long, env = "LOOPD_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM) for --tls-cert.
+    #[arg(long, env = "LOOPD_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// A CA (PEM) that every client certificate must chain to: mutual TLS for robots.
+    #[arg(long, env = "LOOPD_TLS_CLIENT_CA", requires = "tls_cert")]
+    pub tls_client_ca: Option<PathBuf>,
+    /// Serve without keys on a non-loopback address (refused otherwise).
+    #[arg(long, env = "LOOPD_INSECURE")]
+    pub insecure: bool,
     /// Feature extractions and candidate checks running at once (default: number of cores).
     #[arg(long, env = "LOOPD_VERIFY_WORKERS")]
     pub verify_workers: Option<usize>,
@@ -108,6 +126,25 @@ impl ServeArgs {
             device_min_rows: self.search_device_min_frames,
             max_concurrent: self.search_workers.unwrap_or(defaults.max_concurrent).max(1),
         })
+    }
+
+    /// The admin key: the file's first line, or `LOOPD_ADMIN_KEY` (never a flag value, which any
+    /// user could read in `ps`).
+    pub fn admin_key(&self) -> Result<Option<String>> {
+        if let Some(path) = &self.admin_key_file {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| anyhow::anyhow!("reading the admin key file {}: {e}", path.display()))?;
+            let key = text.lines().next().unwrap_or("").trim().to_string();
+            anyhow::ensure!(key.len() >= 16, "the admin key in {} is shorter than 16 characters", path.display());
+            return Ok(Some(key));
+        }
+        match std::env::var("LOOPD_ADMIN_KEY") {
+            Ok(key) if !key.trim().is_empty() => {
+                anyhow::ensure!(key.trim().len() >= 16, "LOOPD_ADMIN_KEY is shorter than 16 characters");
+                Ok(Some(key.trim().to_string()))
+            }
+            _ => Ok(None),
+        }
     }
 
     pub fn server_config(&self) -> ServerConfig {
@@ -134,6 +171,14 @@ impl ServeArgs {
             search: SearchConfig::default(),
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs.clamp(0.0, 3600.0)),
             storage_retry: Duration::from_secs_f64(self.storage_retry_secs.clamp(0.1, 3600.0)),
+            auth: AuthConfig { admin_key: None },
+            insecure: self.insecure,
+            tls: match (&self.tls_cert, &self.tls_key) {
+                (Some(cert), Some(key)) => {
+                    Some(TlsFiles { cert: cert.clone(), key: key.clone(), client_ca: self.tls_client_ca.clone() })
+                }
+                _ => None,
+            },
             connections: ConnectionConfig {
                 header_timeout: Duration::from_secs_f64(self.header_timeout_secs.clamp(0.1, 3600.0)),
                 idle_timeout: Duration::from_secs_f64(self.idle_timeout_secs.clamp(0.1, 86400.0)),
@@ -154,7 +199,11 @@ impl ServeArgs {
 
 pub fn run(a: ServeArgs) -> Result<ExitCode> {
     let model = a.model.load()?;
-    let cfg = ServerConfig { search: a.search_config(model.device)?, ..a.server_config() };
+    let cfg = ServerConfig {
+        search: a.search_config(model.device)?,
+        auth: AuthConfig { admin_key: a.admin_key()? },
+        ..a.server_config()
+    };
     let rt = tokio::runtime::Runtime::new()?;
     rt.block_on(async move {
         let server = RunningServer::start(cfg, model).await?;

@@ -15,6 +15,7 @@ pub(crate) struct Disk {
     pub db: sled::Db,
     pub sessions: sled::Tree,
     pub jobs: sled::Tree,
+    pub tenants: sled::Tree,
     pub commit: GroupCommit,
 }
 
@@ -23,8 +24,9 @@ impl Disk {
         let db = sled::Config::new().path(dir.join("sled")).open()?;
         let sessions = db.open_tree("sessions")?;
         let jobs = db.open_tree("jobs")?;
+        let tenants = db.open_tree("tenants")?;
         let commit = GroupCommit::start(db.clone(), health);
-        Ok(Self { db, sessions, jobs, commit })
+        Ok(Self { db, sessions, jobs, tenants, commit })
     }
 
     /// One small write made durable: whether the disk takes writes now (a flush with nothing

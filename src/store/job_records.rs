@@ -26,7 +26,7 @@ impl Store {
         self.note(r)
     }
 
-    /// Everything written before, job records included, is on disk.
+    /// Everything written before, job and tenant records included, is on disk.
     pub async fn durable_jobs(&self) -> Result<(), StoreError> {
         self.durable().await
     }

@@ -8,6 +8,7 @@ pub mod kernels;
 pub mod query;
 pub mod record;
 mod reopen;
+mod tenant_records;
 
 use disk::{Disk, Health};
 use index::SessionIndex;
@@ -137,11 +138,18 @@ fn features_tree_name(id: &str) -> String {
 }
 
 /// Letters, digits, '-', '_' and '.', with at least one letter or digit ("." and ".." are path
-/// names, not ids).
+/// names, not ids); a tenant's session is stored as `tenant/id` (the API never lets a client
+/// name one with '/').
 fn valid_session_id(id: &str) -> bool {
-    (1..=64).contains(&id.len())
-        && id.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
-        && id.chars().any(|c| c.is_ascii_alphanumeric())
+    let one = |p: &str| {
+        (1..=64).contains(&p.len())
+            && p.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+            && p.chars().any(|c| c.is_ascii_alphanumeric())
+    };
+    match id.split_once('/') {
+        None => one(id),
+        Some((tenant, id)) => one(tenant) && one(id),
+    }
 }
 
 /// Unit length, finite values: cosine similarity is then a dot product.

@@ -1,0 +1,134 @@
+//! The service as one tenant sees it: its session ids mapped to the store's, other tenants'
+//! sessions and jobs answered NOT_FOUND (never "forbidden": ids cannot be probed). Both APIs
+//! reach the service through this.
+use super::error::ApiError;
+use super::jobs::{JobStatus, SequenceRequest};
+use super::service::{CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
+use crate::auth::Caller;
+use crate::store::record::FrameHeader;
+use crate::store::SessionInfo;
+
+pub struct Scoped<'a> {
+    service: &'a LoopService,
+    caller: Caller,
+}
+
+impl LoopService {
+    pub fn scoped(&self, caller: Caller) -> Scoped<'_> {
+        Scoped { service: self, caller }
+    }
+}
+
+impl Scoped<'_> {
+    /// The store's id of one of this tenant's sessions; an id with '/' names none of them.
+    fn sid(&self, id: &str) -> Result<String, ApiError> {
+        if id.contains('/') {
+            return Err(ApiError::NotFound(format!("session '{}' not found", id.chars().take(80).collect::<String>())));
+        }
+        Ok(self.caller.store_id(id))
+    }
+
+    /// Limits checked before a write: the rate first, then stored frames (`adding` more). Checked
+    /// per request: writes in flight at once may pass a frame limit by their number.
+    fn admit(&self, adding: usize) -> Result<(), ApiError> {
+        let Some(quota) = self.caller.quota() else { return Ok(()) };
+        quota.take().map_err(ApiError::Overloaded)?;
+        if let (Some(max), true) = (quota.limits.max_frames, adding > 0) {
+            let held: usize = self.list_sessions().iter().map(|s| s.frames).sum();
+            if (held + adding) as u64 > max {
+                return Err(ApiError::Overloaded(format!(
+                    "tenant '{}' stores {held} frames; its limit is {max} (delete sessions or raise the limit)",
+                    self.caller.tenant_name()
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    pub async fn create_session(&self, mut req: CreateSession) -> Result<SessionInfo, ApiError> {
+        if let Some(max) = self.caller.quota().and_then(|q| q.limits.max_sessions) {
+            let held = self.list_sessions().len();
+            if held as u64 >= max {
+                return Err(ApiError::Overloaded(format!(
+                    "tenant '{}' has {held} sessions; its limit is {max}",
+                    self.caller.tenant_name()
+                )));
+            }
+        }
+        let id = req.id.take().filter(|s| !s.is_empty()).unwrap_or_else(|| {
+            let nanos =
+                std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos();
+            format!("s{nanos:x}")
+        });
+        if id.contains('/') {
+            return Err(ApiError::InvalidArgument(
+                "session id must be 1-64 characters of letters, digits, '-', '_' or '.', with a letter or digit".into(),
+            ));
+        }
+        req.id = Some(self.caller.store_id(&id));
+        Ok(self.caller.view(self.service.create_session(req).await?))
+    }
+
+    pub fn session(&self, id: &str) -> Result<SessionInfo, ApiError> {
+        Ok(self.caller.view(self.service.session(&self.sid(id)?)?))
+    }
+
+    pub fn list_sessions(&self) -> Vec<SessionInfo> {
+        let all = self.service.list_sessions();
+        all.into_iter().filter(|s| self.caller.own(&s.meta.id).is_some()).map(|s| self.caller.view(s)).collect()
+    }
+
+    pub async fn delete_session(&self, id: &str) -> Result<(), ApiError> {
+        self.service.delete_session(&self.sid(id)?).await
+    }
+
+    pub fn frame(&self, session: &str, frame_id: u64) -> Result<FrameHeader, ApiError> {
+        self.service.frame(&self.sid(session)?, frame_id)
+    }
+
+    pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {
+        let sid = self.sid(session)?;
+        self.admit(1)?;
+        self.service.add_frame(&sid, f).await
+    }
+
+    pub async fn query(
+        &self,
+        session: &str,
+        robot_id: Option<String>,
+        at_time: Option<f64>,
+        target: QueryTarget,
+        options: &QueryOverrides,
+    ) -> Result<Vec<LoopMatch>, ApiError> {
+        let sid = self.sid(session)?;
+        self.admit(0)?;
+        self.service.query(&sid, robot_id, at_time, target, options).await
+    }
+
+    pub async fn add_and_query(
+        &self,
+        session: &str,
+        f: FrameInput,
+        options: &QueryOverrides,
+    ) -> Result<(u64, Vec<LoopMatch>), ApiError> {
+        let sid = self.sid(session)?;
+        self.admit(1)?;
+        self.service.add_and_query(&sid, f, options).await
+    }
+
+    pub async fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
+        let sid = self.sid(session)?;
+        self.admit(seq.images.len())?;
+        self.service.start_sequence(&sid, seq).await
+    }
+
+    /// A job of one of this tenant's sessions.
+    pub fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {
+        let not_found =
+            || ApiError::NotFound(format!("job '{}' not found", job_id.chars().take(80).collect::<String>()));
+        let mut status = self.service.job(job_id).map_err(|_| not_found())?;
+        let own = self.caller.own(&status.session_id).ok_or_else(not_found)?.to_string();
+        status.session_id = own;
+        Ok(status)
+    }
+}

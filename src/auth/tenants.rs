@@ -1,0 +1,212 @@
+//! Tenants (name, key id, the key's hash, revoked or not), kept in sled, and the check of a
+//! request's `Authorization: Bearer <key>`.
+use super::caller::Caller;
+use super::keys;
+use super::quota::{Limits, Quota};
+use crate::store::{Store, StoreError};
+use parking_lot::RwLock;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::sync::Arc;
+
+/// Longest Authorization header looked at (a key is 81 characters).
+const MAX_HEADER: usize = 1024;
+
+#[derive(Debug, thiserror::Error)]
+pub enum AuthError {
+    #[error("{0}")]
+    Unauthenticated(String),
+    #[error("{0}")]
+    PermissionDenied(String),
+    #[error("{0}")]
+    InvalidArgument(String),
+    #[error("{0}")]
+    NotFound(String),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+}
+
+/// How the server authenticates, from its start-up settings.
+#[derive(Clone, Debug, Default)]
+pub struct AuthConfig {
+    /// The admin key (from a file or the environment, never a flag value).
+    pub admin_key: Option<String>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct TenantRecord {
+    name: String,
+    key_id: String,
+    key_sha256: String,
+    created: f64,
+    revoked: bool,
+    #[serde(default)]
+    limits: Limits,
+}
+
+/// A tenant as listed (no secret, no hash).
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct TenantInfo {
+    pub name: String,
+    pub key_id: String,
+    pub created: f64,
+    pub revoked: bool,
+    pub limits: Limits,
+}
+
+impl From<&TenantRecord> for TenantInfo {
+    fn from(r: &TenantRecord) -> Self {
+        Self {
+            name: r.name.clone(),
+            key_id: r.key_id.clone(),
+            created: r.created,
+            revoked: r.revoked,
+            limits: r.limits,
+        }
+    }
+}
+
+pub struct Auth {
+    enabled: bool,
+    admin: Option<[u8; 32]>,
+    /// By tenant name, with the quota its requests share.
+    tenants: RwLock<HashMap<String, (TenantRecord, Arc<Quota>)>>,
+    store: Arc<Store>,
+}
+
+fn valid_tenant(name: &str) -> bool {
+    (1..=32).contains(&name.len())
+        && name.bytes().all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-' || b == b'_')
+}
+
+impl Auth {
+    /// Keys are required once an admin key is set or any tenant exists; otherwise every request
+    /// acts for the default tenant (the server refuses to listen beyond loopback that way unless
+    /// told `--insecure`).
+    pub fn new(cfg: &AuthConfig, store: Arc<Store>) -> Result<Self, AuthError> {
+        let mut tenants = HashMap::new();
+        for (name, record) in store.tenants()? {
+            let r: TenantRecord = serde_json::from_slice(&record)
+                .map_err(|e| AuthError::Store(StoreError::Storage(format!("tenant '{name}': {e}"))))?;
+            let quota = Arc::new(Quota::new(r.limits));
+            tenants.insert(name, (r, quota));
+        }
+        let admin = cfg.admin_key.as_deref().map(str::trim).filter(|k| !k.is_empty()).map(keys::digest);
+        let enabled = admin.is_some() || !tenants.is_empty();
+        Ok(Self { enabled, admin, tenants: RwLock::new(tenants), store })
+    }
+
+    pub fn enabled(&self) -> bool {
+        self.enabled
+    }
+
+    /// The caller a request's Authorization header names. The same answer for an unknown and a
+    /// revoked key, and no hint of which part was wrong.
+    pub fn authenticate(&self, authorization: Option<&[u8]>) -> Result<Caller, AuthError> {
+        if !self.enabled {
+            return Ok(Caller::unauthenticated());
+        }
+        let unauthenticated = |m: &str| Err(AuthError::Unauthenticated(m.to_string()));
+        let Some(header) = authorization else {
+            return unauthenticated("missing 'Authorization: Bearer <key>'");
+        };
+        if header.len() > MAX_HEADER {
+            return unauthenticated("Authorization header too long");
+        }
+        let Some(token) = std::str::from_utf8(header)
+            .ok()
+            .and_then(|h| h.split_once(' '))
+            .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+            .map(|(_, t)| t.trim())
+        else {
+            return unauthenticated("expected 'Authorization: Bearer <key>'");
+        };
+        if let Some(admin) = &self.admin {
+            if subtle::ConstantTimeEq::ct_eq(&keys::digest(token)[..], &admin[..]).into() {
+                return Ok(Caller::admin());
+            }
+        }
+        let Some((key_id, secret)) = keys::parse(token) else {
+            return unauthenticated("malformed key");
+        };
+        let tenants = self.tenants.read();
+        let found = tenants.values().find(|(r, _)| r.key_id == key_id && !r.revoked);
+        match found {
+            Some((r, quota)) if keys::unhex(&r.key_sha256).is_some_and(|h| keys::matches(secret, &h)) => {
+                Ok(Caller::limited(&r.name, quota.clone()))
+            }
+            _ => unauthenticated("unknown or revoked key"),
+        }
+    }
+
+    /// Admin routes: the admin key only (metrics stay open while keys are off). Tenants are
+    /// managed only on a server that has an admin key.
+    pub fn require_admin(&self, caller: &Caller, tenants: bool) -> Result<(), AuthError> {
+        if tenants && self.admin.is_none() {
+            return Err(AuthError::PermissionDenied(
+                "tenants are managed with the admin key: start the server with LOOPD_ADMIN_KEY_FILE or LOOPD_ADMIN_KEY"
+                    .into(),
+            ));
+        }
+        if !self.enabled || caller.is_admin() {
+            return Ok(());
+        }
+        Err(AuthError::PermissionDenied("this route needs the admin key".into()))
+    }
+
+    /// A tenant and its key (returned once, kept only as a hash). An existing tenant gets a new
+    /// key and its old one stops working: key rotation, its sessions kept.
+    pub async fn create_tenant(&self, name: &str, limits: Limits) -> Result<(TenantInfo, String), AuthError> {
+        limits.validate().map_err(AuthError::InvalidArgument)?;
+        if !valid_tenant(name) {
+            return Err(AuthError::InvalidArgument(format!(
+                "tenant name '{}' must be 1-32 characters of a-z, 0-9, '-' or '_'",
+                name.chars().take(64).collect::<String>()
+            )));
+        }
+        let (key_id, key, hash) = keys::new_key();
+        let created =
+            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64();
+        let record = TenantRecord {
+            name: name.to_string(),
+            key_id,
+            key_sha256: keys::hex(&hash),
+            created,
+            revoked: false,
+            limits,
+        };
+        self.save(&record).await?;
+        let info = TenantInfo::from(&record);
+        self.tenants.write().insert(name.to_string(), (record, Arc::new(Quota::new(limits))));
+        tracing::info!(tenant = name, key_id = %info.key_id, "tenant key issued");
+        Ok((info, key))
+    }
+
+    pub fn list(&self) -> Vec<TenantInfo> {
+        let mut v: Vec<TenantInfo> = self.tenants.read().values().map(|(r, _)| TenantInfo::from(r)).collect();
+        v.sort_by(|a, b| a.name.cmp(&b.name));
+        v
+    }
+
+    /// Revokes a tenant's key, by tenant name or key id; its sessions stay.
+    pub async fn revoke(&self, name_or_key_id: &str) -> Result<TenantInfo, AuthError> {
+        let found =
+            self.tenants.read().values().find(|(r, _)| r.name == name_or_key_id || r.key_id == name_or_key_id).cloned();
+        let Some((mut record, quota)) = found else {
+            return Err(AuthError::NotFound("no tenant or key with that name".into()));
+        };
+        record.revoked = true;
+        self.save(&record).await?;
+        let info = TenantInfo::from(&record);
+        self.tenants.write().insert(record.name.clone(), (record, quota));
+        tracing::info!(tenant = %info.name, key_id = %info.key_id, "tenant key revoked");
+        Ok(info)
+    }
+
+    async fn save(&self, r: &TenantRecord) -> Result<(), AuthError> {
+        let bytes = serde_json::to_vec(r).map_err(|e| AuthError::Store(StoreError::Storage(e.to_string())))?;
+        self.store.put_tenant(&r.name, &bytes)?;
+        self.store.durable_jobs().await?;
+        Ok(())
+    }
+}

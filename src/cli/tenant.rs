@@ -1,0 +1,97 @@
+//! `loopd tenant create|list|revoke`: tenant keys, through a running server's admin routes (the
+//! server holds the store; the admin key comes from LOOPD_ADMIN_KEY or --admin-key-file).
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Args)]
+pub struct TenantArgs {
+    #[command(subcommand)]
+    command: TenantCommand,
+    /// The server's HTTP address.
+    #[arg(long, env = "LOOPD_SERVER_HTTP", default_value = "http://127.0.0.1:8080", global = true)]
+    server: String,
+    /// A file holding the admin key (else LOOPD_ADMIN_KEY).
+    #[arg(long, env = "LOOPD_ADMIN_KEY_FILE", global = true)]
+    admin_key_file: Option<PathBuf>,
+    /// The CA (PEM) that signed the server's certificate, for an https:// server.
+    #[arg(long, env = "LOOPD_CA", global = true)]
+    ca: Option<PathBuf>,
+}
+
+#[derive(Subcommand)]
+enum TenantCommand {
+    /// A new tenant and its key, printed once (an existing tenant gets a new key; the old one
+    /// stops working).
+    Create {
+        name: String,
+        /// Most sessions the tenant may hold.
+        #[arg(long)]
+        max_sessions: Option<u64>,
+        /// Most frames over all its sessions.
+        #[arg(long)]
+        max_frames: Option<u64>,
+        /// Frames added and queries made per second (token bucket, one second of burst).
+        #[arg(long)]
+        rate: Option<f64>,
+    },
+    /// Every tenant: name, key id, created, revoked.
+    List,
+    /// Revokes a tenant's key, by tenant name or key id (its sessions stay).
+    Revoke { name_or_key_id: String },
+}
+
+fn admin_key(file: &Option<PathBuf>) -> Result<String> {
+    let key = match file {
+        Some(path) => std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?,
+        None => std::env::var("LOOPD_ADMIN_KEY").context("no admin key: set LOOPD_ADMIN_KEY or --admin-key-file")?,
+    };
+    Ok(key.lines().next().unwrap_or("").trim().to_string())
+}
+
+pub fn run(a: TenantArgs) -> Result<ExitCode> {
+    let key = admin_key(&a.admin_key_file)?;
+    let mut client = reqwest::blocking::Client::builder().use_rustls_tls();
+    if let Some(ca) = &a.ca {
+        let pem = std::fs::read(ca).with_context(|| format!("reading {}", ca.display()))?;
+        client = client.add_root_certificate(reqwest::Certificate::from_pem(&pem).context("the CA file")?);
+    }
+    let client = client.build().context("building the HTTP client")?;
+    let base = a.server.trim_end_matches('/');
+    let request = match &a.command {
+        TenantCommand::Create { name, max_sessions, max_frames, rate } => {
+            let limits = serde_json::json!({ "max_sessions": max_sessions, "max_frames": max_frames, "rate": rate });
+            client.post(format!("{base}/v1/tenants")).json(&serde_json::json!({ "name": name, "limits": limits }))
+        }
+        TenantCommand::List => client.get(format!("{base}/v1/tenants")),
+        TenantCommand::Revoke { name_or_key_id } => client.delete(format!("{base}/v1/tenants/{name_or_key_id}")),
+    };
+    let r = request.bearer_auth(key).send().with_context(|| format!("reaching {base}"))?;
+    let status = r.status();
+    let body: serde_json::Value = r.json().context("reading the server's answer")?;
+    if !status.is_success() {
+        anyhow::bail!("{status}: {}", body["error"].as_str().unwrap_or("(no message)"));
+    }
+    match &a.command {
+        TenantCommand::Create { .. } => {
+            println!("tenant {} key id {}", body["name"].as_str().unwrap_or(""), body["key_id"].as_str().unwrap_or(""));
+            println!("{}", body["key"].as_str().unwrap_or(""));
+            eprintln!("the key is shown once: give it to the tenant now (clients send 'Authorization: Bearer <key>')");
+        }
+        TenantCommand::List => {
+            println!("{:<32} {:<12} {:>14} revoked", "tenant", "key id", "created");
+            for t in body["tenants"].as_array().into_iter().flatten() {
+                println!(
+                    "{:<32} {:<12} {:>14.0} {}",
+                    t["name"].as_str().unwrap_or(""),
+                    t["key_id"].as_str().unwrap_or(""),
+                    t["created"].as_f64().unwrap_or(0.0),
+                    t["revoked"].as_bool().unwrap_or(false)
+                );
+            }
+        }
+        TenantCommand::Revoke { .. } => println!("revoked: tenant {} key id {}", body["name"], body["key_id"]),
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,334 @@
+//! Tenants and API keys (issue #13) against the real server on loopback, over real gRPC and HTTP
+//! clients: two tenants with the same session id, every session route tried by the other
+//! tenant (NOT_FOUND / 404, never a hint), bad keys of every kind, admin-only routes, open
+//! health, keys kept across a restart, and the refusal to serve beyond loopback without keys.
+mod common;
+use common::*;
+use loopd::api::server::{RunningServer, ServerConfig};
+use loopd::auth::AuthConfig;
+use loopd::engine::EngineConfig;
+use loopd::pb;
+use loopd::pb::loopd_client::LoopdClient;
+use serde_json::json;
+use std::time::Duration;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+
+const ADMIN: &str = "admin-key-for-the-tenant-tests-0123456789";
+
+async fn start(dir: &std::path::Path) -> RunningServer {
+    let cfg = ServerConfig {
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        auth: AuthConfig { admin_key: Some(ADMIN.into()) },
+        ..ServerConfig::on_loopback(dir.to_path_buf())
+    };
+    RunningServer::start(cfg, imagenet_model()).await.unwrap()
+}
+
+/// What adds a caller's key to each gRPC call.
+type AddKey = Box<dyn FnMut(tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> + Send>;
+type Authed = LoopdClient<InterceptedService<Channel, AddKey>>;
+
+async fn grpc(addr: std::net::SocketAddr, key: Option<&str>) -> Authed {
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap();
+    let header = key.map(|k| format!("Bearer {k}").parse::<tonic::metadata::MetadataValue<_>>().unwrap());
+    let add: AddKey = Box::new(move |mut req: tonic::Request<()>| {
+        if let Some(h) = &header {
+            req.metadata_mut().insert("authorization", h.clone());
+        }
+        Ok(req)
+    });
+    LoopdClient::with_interceptor(channel, add)
+}
+
+fn descriptor_frame(session: &str, dim: usize, i: usize) -> pb::AddFrameRequest {
+    pb::AddFrameRequest {
+        session_id: session.into(),
+        robot_id: "r".into(),
+        timestamp: Some(i as f64),
+        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+            values: (0..dim).map(|k| ((k * 13 + i * 7) % 89) as f32 - 44.0).collect(),
+        })),
+        ..Default::default()
+    }
+}
+
+struct Http {
+    c: reqwest::Client,
+    base: String,
+}
+
+impl Http {
+    async fn call(
+        &self,
+        method: &str,
+        path: &str,
+        key: Option<&str>,
+        body: Option<serde_json::Value>,
+    ) -> (u16, serde_json::Value) {
+        let mut r = self.c.request(method.parse().unwrap(), format!("{}{path}", self.base));
+        if let Some(k) = key {
+            r = r.bearer_auth(k);
+        }
+        if let Some(b) = body {
+            r = r.json(&b);
+        }
+        let r = r.send().await.unwrap();
+        let status = r.status().as_u16();
+        (status, r.json().await.unwrap_or(serde_json::Value::Null))
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tenants_see_only_their_own_sessions_on_every_route() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path()).await;
+    let http = Http { c: reqwest::Client::new(), base: format!("http://{}", server.http_addr) };
+    let dim = server.service.engine.info().dim;
+
+    // A session of the default tenant, from before tenants: the admin key acts for it.
+    assert_eq!(http.call("POST", "/v1/sessions", Some(ADMIN), Some(json!({ "id": "legacy" }))).await.0, 201);
+
+    // Tenants: admin only; the key is shown once.
+    let (st, acme) = http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": "acme" }))).await;
+    assert_eq!(st, 201, "{acme}");
+    let acme_key = acme["key"].as_str().unwrap().to_string();
+    let (_, blue) = http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": "blue" }))).await;
+    let blue_key = blue["key"].as_str().unwrap().to_string();
+    assert_eq!(http.call("POST", "/v1/tenants", Some(&acme_key), Some(json!({ "name": "x" }))).await.0, 403);
+    assert_eq!(http.call("GET", "/v1/tenants", Some(&blue_key), None).await.0, 403);
+    let (_, list) = http.call("GET", "/v1/tenants", Some(ADMIN), None).await;
+    assert!(!list.to_string().contains(&acme_key[20..]), "listings never hold a key");
+    assert_eq!(http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": "Bad/Name" }))).await.0, 400);
+
+    // The same session id in two tenants: one over gRPC, one over HTTP.
+    let mut acme_g = grpc(server.grpc_addr, Some(&acme_key)).await;
+    let mut blue_g = grpc(server.grpc_addr, Some(&blue_key)).await;
+    let made = acme_g.create_session(pb::CreateSessionRequest { id: "warehouse".into(), ..Default::default() }).await;
+    assert_eq!(made.unwrap().into_inner().id, "warehouse");
+    assert_eq!(http.call("POST", "/v1/sessions", Some(&blue_key), Some(json!({ "id": "warehouse" }))).await.0, 201);
+    acme_g.create_session(pb::CreateSessionRequest { id: "secret".into(), ..Default::default() }).await.unwrap();
+    for i in 0..5 {
+        acme_g.add_frame(descriptor_frame("secret", dim, i)).await.unwrap();
+        acme_g.add_frame(descriptor_frame("warehouse", dim, i)).await.unwrap();
+    }
+    blue_g.add_frame(descriptor_frame("warehouse", dim, 100)).await.unwrap();
+    let job_form = reqwest::multipart::Form::new().part(
+        "image",
+        reqwest::multipart::Part::bytes(std::fs::read(data("slambook2-ch11/1.png")).unwrap()).file_name("1.png"),
+    );
+    let r =
+        http.c.post(format!("{}/v1/sessions/secret/sequences", http.base)).bearer_auth(&acme_key).multipart(job_form);
+    let job: serde_json::Value = r.send().await.unwrap().json().await.unwrap();
+    let job_id = job["job_id"].as_str().unwrap().to_string();
+
+    // Blue tries acme's session and job on every HTTP route: 404, as for a session that does not exist.
+    let d = vec![0.5f32; dim];
+    let attacks: Vec<(&str, String, Option<serde_json::Value>)> = vec![
+        ("GET", "/v1/sessions/secret".into(), None),
+        ("DELETE", "/v1/sessions/secret".into(), None),
+        ("GET", "/v1/sessions/secret/frames/0".into(), None),
+        (
+            "POST",
+            "/v1/sessions/secret/frames".into(),
+            Some(json!({ "robot_id": "b", "timestamp": 1, "descriptor": d })),
+        ),
+        ("POST", "/v1/sessions/secret/query".into(), Some(json!({ "robot_id": "b", "descriptor": d }))),
+        (
+            "POST",
+            "/v1/sessions/secret/add_and_query".into(),
+            Some(json!({ "robot_id": "b", "timestamp": 1, "descriptor": d })),
+        ),
+        ("POST", "/v1/sessions/secret/sequences".into(), None),
+        ("GET", format!("/v1/jobs/{job_id}"), None),
+        ("GET", "/v1/sessions/acme%2Fsecret".into(), None),
+        ("GET", "/v1/sessions/legacy".into(), None),
+    ];
+    for (method, path, body) in &attacks {
+        let (st, v) = http.call(method, path, Some(&blue_key), body.clone()).await;
+        assert_eq!(st, 404, "blue {method} {path}: {v}");
+        let (st, _) = http.call(method, &path.replace("secret", "nosuch"), Some(&blue_key), body.clone()).await;
+        assert_eq!(st, 404, "the same answer as for a session that does not exist");
+    }
+    // ... and over gRPC.
+    let nf = tonic::Code::NotFound;
+    assert_eq!(blue_g.get_session(pb::GetSessionRequest { id: "secret".into() }).await.unwrap_err().code(), nf);
+    assert_eq!(blue_g.add_frame(descriptor_frame("secret", dim, 9)).await.unwrap_err().code(), nf);
+    assert_eq!(blue_g.add_and_query(descriptor_frame("secret", dim, 9)).await.unwrap_err().code(), nf);
+    let q = pb::QueryRequest {
+        session_id: "secret".into(),
+        content: Some(pb::query_request::Content::FrameId(0)),
+        ..Default::default()
+    };
+    assert_eq!(blue_g.query(q).await.unwrap_err().code(), nf);
+    assert_eq!(blue_g.delete_session(pb::DeleteSessionRequest { id: "secret".into() }).await.unwrap_err().code(), nf);
+    let mut answers =
+        blue_g.stream_frames(tokio_stream::iter(vec![descriptor_frame("secret", dim, 9)])).await.unwrap().into_inner();
+    assert_eq!(answers.message().await.unwrap().unwrap().error_code, nf as i32);
+    let listed = blue_g.list_sessions(pb::ListSessionsRequest {}).await.unwrap().into_inner().sessions;
+    assert_eq!(listed.iter().map(|s| s.id.as_str()).collect::<Vec<_>>(), ["warehouse"]);
+    assert_eq!(listed[0].frames, 1, "blue's own warehouse, not acme's");
+
+    // Nothing of acme's changed.
+    let secret = acme_g.get_session(pb::GetSessionRequest { id: "secret".into() }).await.unwrap().into_inner();
+    assert!(secret.frames >= 5, "{secret:?}");
+    let mut listed: Vec<String> = acme_g
+        .list_sessions(pb::ListSessionsRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .sessions
+        .into_iter()
+        .map(|s| s.id)
+        .collect();
+    listed.sort();
+    assert_eq!(listed, ["secret", "warehouse"]);
+    let (st, j) = http.call("GET", &format!("/v1/jobs/{job_id}"), Some(&acme_key), None).await;
+    assert_eq!((st, j["session_id"].as_str()), (200, Some("secret")), "{j}");
+    let (_, legacy) = http.call("GET", "/v1/sessions", Some(ADMIN), None).await;
+    assert_eq!(legacy["sessions"].as_array().unwrap().len(), 1, "the admin sees the default tenant's: {legacy}");
+
+    // Bad keys, every kind: 401 / UNAUTHENTICATED.
+    let revoked = http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": "gone" }))).await.1["key"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    assert_eq!(http.call("DELETE", "/v1/tenants/gone", Some(ADMIN), None).await.0, 200);
+    let mut wrong = acme_key.clone();
+    wrong.pop();
+    wrong.push(if acme_key.ends_with('0') { '1' } else { '0' });
+    let long = "x".repeat(8000);
+    for (what, key) in
+        [("revoked", revoked.as_str()), ("wrong secret", &wrong), ("malformed", "lpd_nope"), ("huge", &long)]
+    {
+        let (st, v) = http.call("GET", "/v1/sessions", Some(key), None).await;
+        assert_eq!(st, 401, "{what}: {v}");
+        let mut g = grpc(server.grpc_addr, Some(key)).await;
+        let code = g.list_sessions(pb::ListSessionsRequest {}).await.unwrap_err().code();
+        assert_eq!(code, tonic::Code::Unauthenticated, "{what}");
+    }
+    let r = http.c.get(format!("{}/v1/sessions", http.base)).send().await.unwrap();
+    assert_eq!((r.status().as_u16(), r.headers()["www-authenticate"].to_str().unwrap()), (401, "Bearer"));
+    let r = http.c.get(format!("{}/v1/sessions", http.base)).header("authorization", format!("Basic {acme_key}"));
+    assert_eq!(r.send().await.unwrap().status(), 401, "only Bearer");
+    let r = http.c.get(format!("{}/v1/sessions?api_key={acme_key}", http.base)).bearer_auth(&acme_key);
+    assert_eq!(r.send().await.unwrap().status(), 401, "a key in the URL is refused");
+    let mut anonymous = grpc(server.grpc_addr, None).await;
+    let code = anonymous.get_session(pb::GetSessionRequest { id: "secret".into() }).await.unwrap_err().code();
+    assert_eq!(code, tonic::Code::Unauthenticated);
+    let r = http.c.post(format!("{}/v1/embed", http.base)).body(std::fs::read(data("slambook2-ch11/1.png")).unwrap());
+    assert_eq!(r.send().await.unwrap().status(), 401, "inference needs a key");
+
+    // Health stays open; metrics are the admin's.
+    for path in ["/healthz", "/readyz"] {
+        assert_eq!(http.c.get(format!("{}{path}", http.base)).send().await.unwrap().status(), 200, "{path}");
+    }
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{}", server.grpc_addr))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
+    health
+        .check(tonic_health::pb::HealthCheckRequest { service: String::new() })
+        .await
+        .expect("gRPC health needs no key");
+    assert_eq!(http.call("GET", "/metrics", Some(&acme_key), None).await.0, 403);
+    let r = http.c.get(format!("{}/metrics", http.base)).bearer_auth(ADMIN).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+
+    // Quotas: sessions, frames and rate, each refused with 429 naming the limit; the other
+    // tenants are not touched.
+    let limits = json!({ "max_sessions": 1, "max_frames": 3 });
+    let (st, small) =
+        http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": "small", "limits": limits }))).await;
+    assert_eq!(st, 201, "{small}");
+    let small_key = small["key"].as_str().unwrap().to_string();
+    assert_eq!(http.call("POST", "/v1/sessions", Some(&small_key), Some(json!({ "id": "a" }))).await.0, 201);
+    let (st, v) = http.call("POST", "/v1/sessions", Some(&small_key), Some(json!({ "id": "b" }))).await;
+    assert_eq!(st, 429, "{v}");
+    assert!(v["error"].as_str().unwrap().contains("limit is 1"), "{v}");
+    let frame = |t: usize| json!({ "robot_id": "r", "timestamp": t, "descriptor": vec![t as f32 + 1.0; dim] });
+    for t in 0..3 {
+        assert_eq!(http.call("POST", "/v1/sessions/a/frames", Some(&small_key), Some(frame(t))).await.0, 201);
+    }
+    let (st, v) = http.call("POST", "/v1/sessions/a/frames", Some(&small_key), Some(frame(3))).await;
+    assert_eq!(st, 429, "{v}");
+    assert!(v["error"].as_str().unwrap().contains("its limit is 3"), "{v}");
+    let (_, fast) =
+        http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": "fast", "limits": { "rate": 2.0 } }))).await;
+    let fast_key = fast["key"].as_str().unwrap().to_string();
+    assert_eq!(http.call("POST", "/v1/sessions", Some(&fast_key), Some(json!({ "id": "f" }))).await.0, 201);
+    // Twelve clients at once, over gRPC: a bucket of two, the rest RESOURCE_EXHAUSTED.
+    let flood: Vec<_> = (0..12)
+        .map(|i| {
+            let (addr, key) = (server.grpc_addr, fast_key.clone());
+            tokio::spawn(async move {
+                let mut g = grpc(addr, Some(&key)).await;
+                g.add_frame(descriptor_frame("f", dim, i)).await.map(drop).map_err(|s| s.code())
+            })
+        })
+        .collect();
+    let mut codes = Vec::new();
+    for f in flood {
+        codes.push(f.await.unwrap());
+    }
+    let ok = codes.iter().filter(|c| c.is_ok()).count();
+    assert!((1..=3).contains(&ok), "{codes:?}");
+    assert!(codes.iter().all(|c| c.is_ok() || *c == Err(tonic::Code::ResourceExhausted)), "{codes:?}");
+    let r = http.c.post(format!("{}/v1/sessions/f/frames", http.base)).bearer_auth(&fast_key).json(&frame(9));
+    let r = r.send().await.unwrap();
+    assert_eq!((r.status().as_u16(), r.headers()["retry-after"].to_str().unwrap()), (429, "1"));
+    blue_g.add_frame(descriptor_frame("warehouse", dim, 101)).await.expect("other tenants are not limited");
+    let (_, listed) = http.call("GET", "/v1/tenants", Some(ADMIN), None).await;
+    assert!(listed.to_string().contains("\"max_frames\":3"), "{listed}");
+
+    // The command line: `loopd tenant create|list|revoke` through the admin routes.
+    let server_url = http.base.clone();
+    let cli = move |args: &[&str]| {
+        let out = loopd_bin()
+            .arg("tenant")
+            .args(args)
+            .args(["--server", &server_url])
+            .env("LOOPD_ADMIN_KEY", ADMIN)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "loopd tenant {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let (c1, c2, c3) = (cli.clone(), cli.clone(), cli);
+    let made = tokio::task::spawn_blocking(move || c1(&["create", "cli-made", "--rate", "100"])).await.unwrap();
+    let cli_key = made.lines().nth(1).unwrap().trim().to_string();
+    assert_eq!(http.call("GET", "/v1/sessions", Some(&cli_key), None).await.0, 200);
+    let listed = tokio::task::spawn_blocking(move || c2(&["list"])).await.unwrap();
+    assert!(listed.contains("cli-made") && !listed.contains(&cli_key), "{listed}");
+    tokio::task::spawn_blocking(move || c3(&["revoke", "cli-made"])).await.unwrap();
+    assert_eq!(http.call("GET", "/v1/sessions", Some(&cli_key), None).await.0, 401);
+
+    // Keys and ownership survive a restart.
+    tokio::time::sleep(Duration::from_millis(500)).await; // the job on acme's session finishes
+    server.shutdown().await.unwrap();
+    let server = start(dir.path()).await;
+    let mut acme_g = grpc(server.grpc_addr, Some(&acme_key)).await;
+    let secret = acme_g.get_session(pb::GetSessionRequest { id: "secret".into() }).await.unwrap().into_inner();
+    assert!(secret.frames >= 5);
+    let mut gone = grpc(server.grpc_addr, Some(&revoked)).await;
+    assert_eq!(gone.list_sessions(pb::ListSessionsRequest {}).await.unwrap_err().code(), tonic::Code::Unauthenticated);
+    server.shutdown().await.unwrap();
+}
+
+/// Without keys the server listens on loopback only, unless told --insecure.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_keys_beyond_loopback_without_insecure() {
+    let dir = tempfile::tempdir().unwrap();
+    let wide = |insecure| ServerConfig {
+        engine: EngineConfig { max_batch: 1, warm_up: false, ..Default::default() },
+        grpc_addr: "0.0.0.0:0".parse().unwrap(),
+        insecure,
+        ..ServerConfig::on_loopback(dir.path().to_path_buf())
+    };
+    let refused = RunningServer::start(wide(false), imagenet_model()).await.err().expect("refused");
+    assert!(refused.to_string().contains("refusing to listen"), "{refused}");
+    let server = RunningServer::start(wide(true), imagenet_model()).await.expect("--insecure serves");
+    server.shutdown().await.unwrap();
+}
