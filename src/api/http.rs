@@ -411,11 +411,33 @@ async fn authenticate(
     State(s): State<Arc<AppState>>,
     mut req: Request,
     next: axum::middleware::Next,
-) -> Result<axum::response::Response, ApiError> {
+) -> axum::response::Response {
     let path = req.uri().path();
     if path == "/healthz" || path == "/readyz" {
-        return Ok(next.run(req).await);
+        return next.run(req).await;
     }
+    // Refused before its body is read: an HTTP/1 connection cannot be reused after that (the
+    // unread body is still on it), so the answer says so and a client does not reuse it.
+    let unread_body = req.version() <= axum::http::Version::HTTP_11
+        && (req.headers().contains_key(header::TRANSFER_ENCODING)
+            || req.headers().get(header::CONTENT_LENGTH).is_some_and(|v| v.as_bytes() != b"0"));
+    match admit(&s.auth, &req) {
+        Ok(caller) => {
+            req.extensions_mut().insert(caller);
+            next.run(req).await
+        }
+        Err(e) => {
+            let mut r = e.into_response();
+            if unread_body {
+                r.headers_mut().insert(header::CONNECTION, axum::http::HeaderValue::from_static("close"));
+            }
+            r
+        }
+    }
+}
+
+fn admit(auth: &Auth, req: &Request) -> Result<Caller, ApiError> {
+    let path = req.uri().path();
     let tenants = path.starts_with("/v1/tenants");
     let admin_only = path == "/metrics" || tenants;
     let in_url = req.uri().query().is_some_and(|q| {
@@ -424,15 +446,14 @@ async fn authenticate(
             ["key", "api_key", "apikey", "token", "access_token", "authorization"].contains(&name.as_str())
         })
     });
-    if in_url && s.auth.enabled() {
+    if in_url && auth.enabled() {
         return Err(ApiError::Unauthenticated("send the key in the Authorization header, never in the URL".into()));
     }
-    let caller = s.auth.authenticate(req.headers().get(header::AUTHORIZATION).map(|v| v.as_bytes()))?;
+    let caller = auth.authenticate(req.headers().get(header::AUTHORIZATION).map(|v| v.as_bytes()))?;
     if admin_only {
-        s.auth.require_admin(&caller, tenants)?;
+        auth.require_admin(&caller, tenants)?;
     }
-    req.extensions_mut().insert(caller);
-    Ok(next.run(req).await)
+    Ok(caller)
 }
 
 #[derive(Deserialize)]
