@@ -3,12 +3,11 @@ pub mod device;
 pub mod disk;
 pub mod durability;
 pub mod index;
-mod job_records;
 pub mod kernels;
 pub mod query;
 pub mod record;
+mod records;
 mod reopen;
-mod tenant_records;
 
 use disk::{Disk, Health};
 use index::SessionIndex;
