@@ -20,25 +20,13 @@ fn rss_mib(pid: u32) -> f64 {
     kb / 1024.0
 }
 
-fn frame(robot: &str, i: usize) -> pb::AddFrameRequest {
-    let image = std::fs::read(data(&format!("corridor/ref/{:07}.jpg", i % 111))).unwrap();
-    pb::AddFrameRequest {
-        session_id: "o".into(),
-        robot_id: robot.into(),
-        timestamp: Some(i as f64),
-        content: Some(pb::add_frame_request::Content::Image(image.into())),
-        options: Some(pb::QueryOptions { k: Some(3), ..Default::default() }),
-        ..Default::default()
-    }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_burst_of_64_clients_is_refused_fast_with_bounded_memory() {
     let dir = tempfile::tempdir().unwrap();
     let (server, _) = Loopd::start(dir.path(), &["--queue-capacity", "4", "--max-batch", "4"]).await;
     let mut c = LoopdClient::connect(server.grpc_url()).await.unwrap();
     c.create_session(pb::CreateSessionRequest { id: "o".into(), ..Default::default() }).await.unwrap();
-    c.add_and_query(frame("warm", 0)).await.unwrap();
+    c.add_and_query(corridor_frame("o", "warm", 0)).await.unwrap();
     let before = rss_mib(server.pid());
 
     // 64 robots, 6 frames each, all at once, each on its own connection.
@@ -64,7 +52,7 @@ async fn a_burst_of_64_clients_is_refused_fast_with_bounded_memory() {
                 let mut outcomes = Vec::new();
                 for i in 0..6 {
                     let sent = Instant::now();
-                    let r = c.add_and_query(frame(&format!("r{r}"), r * 6 + i)).await;
+                    let r = c.add_and_query(corridor_frame("o", &format!("r{r}"), r * 6 + i)).await;
                     outcomes.push((r.map(|_| ()).map_err(|s| s.code()), sent.elapsed()));
                 }
                 outcomes
@@ -98,7 +86,7 @@ async fn a_burst_of_64_clients_is_refused_fast_with_bounded_memory() {
     // After the burst: normal service, and the memory back under the bound.
     tokio::time::sleep(Duration::from_millis(500)).await;
     let t = Instant::now();
-    c.add_and_query(frame("after", 1)).await.unwrap();
+    c.add_and_query(corridor_frame("o", "after", 1)).await.unwrap();
     let after = rss_mib(server.pid());
     eprintln!("after the burst: a frame in {:.2?}, RSS {after:.0} MiB", t.elapsed());
     assert!(after - before < 1024.0);

@@ -23,18 +23,6 @@ async fn start(dir: &std::path::Path, grace: Duration) -> RunningServer {
     RunningServer::start(cfg, imagenet_model()).await.unwrap()
 }
 
-fn frame(session: &str, robot: &str, i: usize) -> pb::AddFrameRequest {
-    let image = std::fs::read(data(&format!("corridor/ref/{:07}.jpg", i % 111))).unwrap();
-    pb::AddFrameRequest {
-        session_id: session.into(),
-        robot_id: robot.into(),
-        timestamp: Some(i as f64),
-        content: Some(pb::add_frame_request::Content::Image(image.into())),
-        options: Some(pb::QueryOptions { k: Some(3), ..Default::default() }),
-        ..Default::default()
-    }
-}
-
 /// SIGTERM's path with a robot streaming and another holding an idle stream open: both streams
 /// end with UNAVAILABLE after their acknowledged frames, shutdown finishes well inside the grace
 /// time, and every acknowledged frame is there after a restart.
@@ -46,14 +34,14 @@ async fn shutdown_ends_open_streams_and_keeps_every_acknowledged_frame() {
     c.create_session(pb::CreateSessionRequest { id: "s".into(), ..Default::default() }).await.unwrap();
     // An idle robot: one frame, then the stream stays open.
     let (idle_tx, idle_rx) = tokio::sync::mpsc::channel(4);
-    idle_tx.send(frame("s", "idle", 0)).await.unwrap();
+    idle_tx.send(corridor_frame("s", "idle", 0)).await.unwrap();
     let mut idle = c.stream_frames(tokio_stream::wrappers::ReceiverStream::new(idle_rx)).await.unwrap().into_inner();
     assert_eq!(idle.message().await.unwrap().unwrap().error, "");
     // A robot streaming at 4 fps, without end.
     let (busy_tx, busy_rx) = tokio::sync::mpsc::channel(4);
     let feeder = tokio::spawn(async move {
         for i in 1.. {
-            if busy_tx.send(frame("s", "busy", i)).await.is_err() {
+            if busy_tx.send(corridor_frame("s", "busy", i)).await.is_err() {
                 break;
             }
             tokio::time::sleep(Duration::from_millis(250)).await;
@@ -119,10 +107,10 @@ async fn oversized_inputs_and_latency() {
     big.resize((4 << 20) + 1, 0);
     let r = http.post(url("/v1/sessions/o/frames?robot_id=r&timestamp=1")).body(big.clone()).send().await.unwrap();
     assert_eq!(r.status(), 413);
-    let mut req = frame("o", "r", 1);
+    let mut req = corridor_frame("o", "r", 1);
     req.content = Some(pb::add_frame_request::Content::Image(big.into()));
     assert_eq!(c.add_frame(req).await.unwrap_err().code(), tonic::Code::OutOfRange);
-    let mut huge = frame("o", "r", 1);
+    let mut huge = corridor_frame("o", "r", 1);
     huge.content = Some(pb::add_frame_request::Content::Image(vec![0u8; 5 << 20].into()));
     assert_eq!(c.add_frame(huge).await.unwrap_err().code(), tonic::Code::OutOfRange);
 
@@ -147,11 +135,11 @@ async fn oversized_inputs_and_latency() {
     // Answers above 250 bytes over gRPC (k = 10) come back without the ~40 ms stall.
     // Frames as a fleet sends them: a robot id and a pose, so ten matches are about 1 KB.
     for i in 0..12 {
-        let mut f = frame("o", "warehouse-robot-07", i);
+        let mut f = corridor_frame("o", "warehouse-robot-07", i);
         f.pose = Some(pb::Pose { x: i as f64, y: 0.5, z: 0.1, qx: 0.0, qy: 0.0, qz: 0.38, qw: 0.92 });
         c.add_frame(f).await.unwrap();
     }
-    let d = c.add_and_query(frame("o", "r", 50)).await.unwrap();
+    let d = c.add_and_query(corridor_frame("o", "r", 50)).await.unwrap();
     assert!(d.into_inner().matches.len() >= 3);
     let query = |i: u64| pb::QueryRequest {
         session_id: "o".into(),

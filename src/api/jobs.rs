@@ -311,7 +311,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
         s.clone()
     };
     save(&service.store, &finished);
-    if let Err(e) = service.store.durable_jobs().await {
+    if let Err(e) = service.store.durable_records().await {
         tracing::warn!(job = %finished.job_id, error = %e, "job record not made durable");
     }
 }

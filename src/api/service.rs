@@ -485,7 +485,7 @@ impl LoopService {
         self.check_space(&s)?;
         check_robot_id(&seq.robot_id)?;
         let id = self.jobs.start(self.clone(), s.meta.id.clone(), seq)?;
-        self.store.durable_jobs().await?;
+        self.store.durable_records().await?;
         Ok(id)
     }
 

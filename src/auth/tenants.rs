@@ -206,7 +206,7 @@ impl Auth {
     async fn save(&self, r: &TenantRecord) -> Result<(), AuthError> {
         let bytes = serde_json::to_vec(r).map_err(|e| AuthError::Store(StoreError::Storage(e.to_string())))?;
         self.store.put_tenant(&r.name, &bytes)?;
-        self.store.durable_jobs().await?;
+        self.store.durable_records().await?;
         Ok(())
     }
 }

@@ -44,7 +44,7 @@ impl Store {
     }
 
     /// Everything written before, job and tenant records included, is on disk.
-    pub async fn durable_jobs(&self) -> Result<(), StoreError> {
+    pub async fn durable_records(&self) -> Result<(), StoreError> {
         self.durable().await
     }
 }

@@ -67,3 +67,17 @@ pub fn imagenet_model_at(width: u32, height: u32) -> Model {
     cfg.preprocess.height = height;
     Model::load(&weights(), cfg, tch::Device::Cpu, DType::F32).expect("loading weights").0
 }
+
+/// A Corridor reference frame (frame `i` modulo the 111) as an AddFrame request asking for 3
+/// matches: the frame the server-level tests stream.
+pub fn corridor_frame(session: &str, robot: &str, i: usize) -> loopd::pb::AddFrameRequest {
+    let image = std::fs::read(data(&format!("corridor/ref/{:07}.jpg", i % 111))).expect("reading a Corridor frame");
+    loopd::pb::AddFrameRequest {
+        session_id: session.into(),
+        robot_id: robot.into(),
+        timestamp: Some(i as f64),
+        content: Some(loopd::pb::add_frame_request::Content::Image(image.into())),
+        options: Some(loopd::pb::QueryOptions { k: Some(3), ..Default::default() }),
+        ..Default::default()
+    }
+}
