@@ -25,7 +25,7 @@ async fn start(dir: &std::path::Path, keys: bool) -> anyhow::Result<RunningServe
     let model = Model::new(ModelConfig::default(), tch::Device::Cpu, DType::F32)?;
     let cfg = ServerConfig {
         engine: EngineConfig { max_batch: 1, warm_up: false, ..Default::default() },
-        auth: AuthConfig { admin_key: keys.then(|| ADMIN.to_string()) },
+        auth: AuthConfig { admin_key: keys.then(|| ADMIN.to_string()), ..Default::default() },
         ..ServerConfig::on_loopback(dir.to_path_buf())
     };
     RunningServer::start(cfg, model).await

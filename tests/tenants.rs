@@ -19,7 +19,7 @@ const ADMIN: &str = "admin-key-for-the-tenant-tests-0123456789";
 async fn start(dir: &std::path::Path) -> RunningServer {
     let cfg = ServerConfig {
         engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
-        auth: AuthConfig { admin_key: Some(ADMIN.into()) },
+        auth: AuthConfig { admin_key: Some(ADMIN.into()), ..Default::default() },
         ..ServerConfig::on_loopback(dir.to_path_buf())
     };
     RunningServer::start(cfg, imagenet_model()).await.unwrap()
@@ -330,5 +330,119 @@ async fn no_keys_beyond_loopback_without_insecure() {
     let refused = RunningServer::start(wide(false), imagenet_model()).await.err().expect("refused");
     assert!(refused.to_string().contains("refusing to listen"), "{refused}");
     let server = RunningServer::start(wide(true), imagenet_model()).await.expect("--insecure serves");
+    server.shutdown().await.unwrap();
+}
+
+/// One tenant flooding the inference queue with real images gets RESOURCE_EXHAUSTED naming its
+/// share, while another tenant's frames are all served; /metrics counts both per tenant.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flooding_tenant_cannot_starve_another() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = ServerConfig {
+        engine: EngineConfig { max_batch: 2, queue_capacity: 8, warm_up: false, ..Default::default() },
+        auth: AuthConfig { admin_key: Some(ADMIN.into()), tenant_in_flight: Some(4) },
+        ..ServerConfig::on_loopback(dir.path().to_path_buf())
+    };
+    let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
+    let http = Http { c: reqwest::Client::new(), base: format!("http://{}", server.http_addr) };
+    let mut keys = Vec::new();
+    for name in ["flood", "calm"] {
+        let (_, t) = http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": name }))).await;
+        let key = t["key"].as_str().unwrap().to_string();
+        grpc(server.grpc_addr, Some(&key))
+            .await
+            .create_session(pb::CreateSessionRequest { id: "map".into(), ..Default::default() })
+            .await
+            .unwrap();
+        keys.push(key);
+    }
+    let flood: Vec<_> = (0..32)
+        .map(|i| {
+            let key = keys[0].clone();
+            let addr = server.grpc_addr;
+            tokio::spawn(async move { grpc(addr, Some(&key)).await.add_and_query(corridor_frame("map", "f", i)).await })
+        })
+        .collect();
+    let mut calm = grpc(server.grpc_addr, Some(&keys[1])).await;
+    for i in 0..6 {
+        calm.add_and_query(corridor_frame("map", "c", i)).await.expect("the calm tenant is served during the flood");
+    }
+    let (mut stored, mut refused) = (0, 0);
+    for f in flood {
+        match f.await.unwrap() {
+            Ok(_) => stored += 1,
+            Err(s) => {
+                assert_eq!(s.code(), tonic::Code::ResourceExhausted, "{s:?}");
+                assert!(s.message().contains("share is 4"), "{}", s.message());
+                refused += 1;
+            }
+        }
+    }
+    assert!(refused > 0 && stored > 0, "{stored} stored, {refused} refused");
+    let metrics = http.c.get(format!("{}/metrics", http.base)).bearer_auth(ADMIN).send().await.unwrap();
+    let metrics = metrics.text().await.unwrap();
+    let sample = |name: &str| {
+        metrics.lines().find(|l| l.starts_with(name)).and_then(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
+    };
+    assert_eq!(sample("loopd_tenant_refused_total{tenant=\"flood\",limit=\"queue\"}"), Some(refused));
+    assert_eq!(sample("loopd_tenant_frames_added_total{tenant=\"flood\"}"), Some(stored));
+    assert_eq!(sample("loopd_tenant_frames_added_total{tenant=\"calm\"}"), Some(6));
+    assert_eq!(sample("loopd_tenant_refused_total{tenant=\"calm\",limit=\"queue\"}"), Some(0));
+    assert_eq!(sample("loopd_tenant_in_flight{tenant=\"flood\"}"), Some(0));
+    server.shutdown().await.unwrap();
+}
+
+/// Tenants managed over gRPC (the Admin service): the admin key only, the key shown once and
+/// usable at once, revocation by key id.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tenants_are_managed_over_grpc_with_the_admin_key() {
+    use loopd::pb::admin_client::AdminClient;
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path()).await;
+    let admin_client = |key: Option<&str>| {
+        let header = key.map(|k| format!("Bearer {k}").parse::<tonic::metadata::MetadataValue<_>>().unwrap());
+        let addr = server.grpc_addr;
+        async move {
+            let channel =
+                tonic::transport::Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap();
+            AdminClient::with_interceptor(channel, move |mut req: tonic::Request<()>| {
+                if let Some(h) = &header {
+                    req.metadata_mut().insert("authorization", h.clone());
+                }
+                Ok(req)
+            })
+        }
+    };
+    let mut admin = admin_client(Some(ADMIN)).await;
+    let limits = pb::TenantLimits { rate: Some(50.0), max_in_flight: Some(2), ..Default::default() };
+    let made = admin
+        .create_tenant(pb::CreateTenantRequest { name: "grpc-made".into(), limits: Some(limits) })
+        .await
+        .unwrap()
+        .into_inner();
+    let tenant = made.tenant.unwrap();
+    assert_eq!((tenant.name.as_str(), tenant.limits.unwrap().max_in_flight), ("grpc-made", Some(2)));
+    let bad = admin.create_tenant(pb::CreateTenantRequest { name: "Bad/Name".into(), limits: None }).await;
+    assert_eq!(bad.unwrap_err().code(), tonic::Code::InvalidArgument);
+
+    let mut robot = grpc(server.grpc_addr, Some(&made.key)).await;
+    robot.create_session(pb::CreateSessionRequest { id: "m".into(), ..Default::default() }).await.unwrap();
+    let denied = admin_client(Some(&made.key)).await.list_tenants(pb::ListTenantsRequest {}).await;
+    assert_eq!(denied.unwrap_err().code(), tonic::Code::PermissionDenied);
+    let anonymous = admin_client(None).await.list_tenants(pb::ListTenantsRequest {}).await;
+    assert_eq!(anonymous.unwrap_err().code(), tonic::Code::Unauthenticated);
+
+    let listed = admin.list_tenants(pb::ListTenantsRequest {}).await.unwrap().into_inner().tenants;
+    assert!(listed.iter().any(|t| t.name == "grpc-made" && !t.revoked));
+    let revoked = admin
+        .revoke_tenant(pb::RevokeTenantRequest { name_or_key_id: tenant.key_id.clone() })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(revoked.revoked);
+    let gone = robot.list_sessions(pb::ListSessionsRequest {}).await.unwrap_err();
+    assert_eq!(gone.code(), tonic::Code::Unauthenticated);
+    let missing = admin.revoke_tenant(pb::RevokeTenantRequest { name_or_key_id: "nobody".into() }).await;
+    assert_eq!(missing.unwrap_err().code(), tonic::Code::NotFound);
     server.shutdown().await.unwrap();
 }

@@ -116,7 +116,7 @@ async fn mutual_tls_on_both_apis_and_a_reload_on_sighup() {
     };
     let cfg = ServerConfig {
         engine: EngineConfig { max_batch: 2, warm_up: false, ..Default::default() },
-        auth: AuthConfig { admin_key: Some(ADMIN.into()) },
+        auth: AuthConfig { admin_key: Some(ADMIN.into()), ..Default::default() },
         tls: Some(files.clone()),
         ..ServerConfig::on_loopback(dir.path().join("data"))
     };

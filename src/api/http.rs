@@ -63,7 +63,9 @@ async fn ready(State(s): State<Arc<AppState>>) -> Result<&'static str, ApiError>
 }
 
 async fn metrics(State(s): State<Arc<AppState>>) -> impl IntoResponse {
-    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], s.service.engine.metrics().render_prometheus())
+    let mut body = s.service.engine.metrics().render_prometheus();
+    body.push_str(&s.auth.render_metrics());
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], body)
 }
 
 #[derive(Serialize)]

@@ -2,6 +2,7 @@
 pub mod conn;
 pub mod error;
 pub mod grpc;
+pub mod grpc_admin;
 pub mod http;
 pub mod jobs;
 pub mod server;

@@ -1,6 +1,7 @@
 //! One process, both APIs: gRPC (tonic) and HTTP (axum) over one engine and one store.
 use super::conn::{accept, ConnLimits};
 use super::grpc::{self, GrpcApi, LoopdServer};
+use super::grpc_admin::{AdminApi, AdminServer};
 use super::http::{router, AppState};
 use super::service::LoopService;
 use super::tls::{Conn, Tls, TlsFiles};
@@ -183,6 +184,10 @@ impl RunningServer {
         // Keys on everything but health (reflection describes the API: a key's business too).
         let api = InterceptedService::new(api, grpc::authenticate(auth.clone()));
         let reflection = InterceptedService::new(reflection, grpc::authenticate(auth.clone()));
+        let admin = InterceptedService::new(
+            AdminServer::new(AdminApi { auth: auth.clone() }),
+            grpc::authenticate(auth.clone()),
+        );
         let watcher = tokio::spawn(watch_storage(service.store.clone(), health, cfg.storage_retry, rx.clone()));
         let mut grpc_rx = rx;
         let c = cfg.connections;
@@ -196,6 +201,7 @@ impl RunningServer {
                 .add_service(health_service)
                 .add_service(reflection)
                 .add_service(api)
+                .add_service(admin)
                 .serve_with_incoming_shutdown(incoming, async move {
                     let _ = grpc_rx.wait_for(|s| *s).await;
                 })

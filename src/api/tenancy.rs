@@ -4,6 +4,7 @@
 use super::error::ApiError;
 use super::jobs::{JobStatus, SequenceRequest};
 use super::service::{CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
+use crate::auth::quota::{InFlight, Refusal};
 use crate::auth::Caller;
 use crate::store::record::FrameHeader;
 use crate::store::SessionInfo;
@@ -28,27 +29,46 @@ impl Scoped<'_> {
         Ok(self.caller.store_id(id))
     }
 
-    /// Limits checked before a write: the rate first, then stored frames (`adding` more). Checked
-    /// per request: writes in flight at once may pass a frame limit by their number.
-    fn admit(&self, adding: usize) -> Result<(), ApiError> {
-        let Some(quota) = self.caller.quota() else { return Ok(()) };
-        quota.take().map_err(ApiError::Overloaded)?;
+    /// Limits checked before a write or query: the rate first, then stored frames (`adding`
+    /// more), then the tenant's share of the queue (the slot is held until the guard drops).
+    /// Checked per request: writes in flight at once may pass a frame limit by their number.
+    fn admit(&self, adding: usize) -> Result<Option<InFlight>, ApiError> {
+        let Some(quota) = self.caller.quota_arc() else { return Ok(None) };
+        quota.counters.requests.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let refuse = |why: Refusal, message: String| {
+            quota.refused(why);
+            ApiError::Overloaded(message)
+        };
+        quota.take().map_err(|m| refuse(Refusal::Rate, m))?;
         if let (Some(max), true) = (quota.limits.max_frames, adding > 0) {
             let held: usize = self.list_sessions().iter().map(|s| s.frames).sum();
             if (held + adding) as u64 > max {
-                return Err(ApiError::Overloaded(format!(
-                    "tenant '{}' stores {held} frames; its limit is {max} (delete sessions or raise the limit)",
-                    self.caller.tenant_name()
-                )));
+                return Err(refuse(
+                    Refusal::Frames,
+                    format!(
+                        "tenant '{}' stores {held} frames; its limit is {max} (delete sessions or raise the limit)",
+                        self.caller.tenant_name()
+                    ),
+                ));
             }
         }
-        Ok(())
+        quota.enter().map(Some).map_err(|m| refuse(Refusal::Queue, m))
+    }
+
+    /// Counts frames a tenant stored.
+    fn added(&self, frames: usize) {
+        if let Some(q) = self.caller.quota() {
+            q.counters.frames_added.fetch_add(frames as u64, std::sync::atomic::Ordering::Relaxed);
+        }
     }
 
     pub async fn create_session(&self, mut req: CreateSession) -> Result<SessionInfo, ApiError> {
         if let Some(max) = self.caller.quota().and_then(|q| q.limits.max_sessions) {
             let held = self.list_sessions().len();
             if held as u64 >= max {
+                if let Some(q) = self.caller.quota() {
+                    q.refused(Refusal::Sessions);
+                }
                 return Err(ApiError::Overloaded(format!(
                     "tenant '{}' has {held} sessions; its limit is {max}",
                     self.caller.tenant_name()
@@ -88,8 +108,10 @@ impl Scoped<'_> {
 
     pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {
         let sid = self.sid(session)?;
-        self.admit(1)?;
-        self.service.add_frame(&sid, f).await
+        let _slot = self.admit(1)?;
+        let id = self.service.add_frame(&sid, f).await?;
+        self.added(1);
+        Ok(id)
     }
 
     pub async fn query(
@@ -101,7 +123,7 @@ impl Scoped<'_> {
         options: &QueryOverrides,
     ) -> Result<Vec<LoopMatch>, ApiError> {
         let sid = self.sid(session)?;
-        self.admit(0)?;
+        let _slot = self.admit(0)?;
         self.service.query(&sid, robot_id, at_time, target, options).await
     }
 
@@ -112,13 +134,16 @@ impl Scoped<'_> {
         options: &QueryOverrides,
     ) -> Result<(u64, Vec<LoopMatch>), ApiError> {
         let sid = self.sid(session)?;
-        self.admit(1)?;
-        self.service.add_and_query(&sid, f, options).await
+        let _slot = self.admit(1)?;
+        let answer = self.service.add_and_query(&sid, f, options).await?;
+        self.added(1);
+        Ok(answer)
     }
 
     pub async fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
         let sid = self.sid(session)?;
-        self.admit(seq.images.len())?;
+        // A job runs after this returns: the slot checks the share at submission only.
+        drop(self.admit(seq.images.len())?);
         self.service.start_sequence(&sid, seq).await
     }
 

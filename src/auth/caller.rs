@@ -30,6 +30,10 @@ impl Caller {
         self.quota.as_deref()
     }
 
+    pub fn quota_arc(&self) -> Option<&Arc<Quota>> {
+        self.quota.as_ref()
+    }
+
     /// The admin key: manages tenants and acts on the default tenant's sessions.
     pub fn admin() -> Self {
         Self { tenant: DEFAULT_TENANT.to_string(), admin: true, quota: None }

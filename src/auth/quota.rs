@@ -1,7 +1,10 @@
-//! Per-tenant limits: sessions, stored frames, and a request rate (token bucket). Over one, a
-//! request gets RESOURCE_EXHAUSTED / 429 with a message naming the limit.
+//! Per-tenant limits: sessions, stored frames, a request rate (token bucket) and a share of the
+//! inference queue. Over one, a request gets RESOURCE_EXHAUSTED / 429 with a message naming the
+//! limit. Each tenant's requests and refusals are counted for /metrics.
 use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// A tenant's limits; None: unlimited.
@@ -12,10 +15,16 @@ pub struct Limits {
     pub max_frames: Option<u64>,
     /// Frames added and queries made per second (bursts of up to one second's worth).
     pub rate: Option<f64>,
+    /// Frames and queries of this tenant being embedded or searched at once (default: the
+    /// server's --tenant-queue-share of its queue), so one flooding tenant cannot starve others.
+    pub max_in_flight: Option<u64>,
 }
 
 impl Limits {
     pub fn validate(&self) -> Result<(), String> {
+        if self.max_in_flight == Some(0) {
+            return Err("max_in_flight must be at least 1".into());
+        }
         match self.rate {
             Some(r) if !(r.is_finite() && r > 0.0 && r <= 1e6) => {
                 Err(format!("rate {r} must be in (0, 1e6] per second"))
@@ -25,16 +34,101 @@ impl Limits {
     }
 }
 
-/// A tenant's limits and the state of its rate bucket, shared by all its requests.
+/// Which limit refused a request (the `limit` label of loopd_tenant_refused_total).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Refusal {
+    Rate,
+    Frames,
+    Sessions,
+    Queue,
+}
+
+impl Refusal {
+    const ALL: [Refusal; 4] = [Refusal::Rate, Refusal::Frames, Refusal::Sessions, Refusal::Queue];
+
+    fn label(self) -> &'static str {
+        match self {
+            Refusal::Rate => "rate",
+            Refusal::Frames => "frames",
+            Refusal::Sessions => "sessions",
+            Refusal::Queue => "queue",
+        }
+    }
+}
+
+/// A tenant's counters since the server started.
+#[derive(Debug, Default)]
+pub struct Counters {
+    pub requests: AtomicU64,
+    pub frames_added: AtomicU64,
+    refused: [AtomicU64; 4],
+}
+
+/// A tenant's limits, the state of its rate bucket and its requests in flight, shared by all its
+/// requests.
 #[derive(Debug)]
 pub struct Quota {
     pub limits: Limits,
     bucket: Mutex<(f64, Instant)>,
+    /// The in-flight limit in force (the tenant's own, else the server's default share).
+    max_in_flight: Option<u64>,
+    in_flight: AtomicU64,
+    pub counters: Counters,
+}
+
+/// One request of a tenant in flight; the slot is freed when this drops.
+pub struct InFlight(Arc<Quota>);
+
+impl Drop for InFlight {
+    fn drop(&mut self) {
+        self.0.in_flight.fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 impl Quota {
-    pub fn new(limits: Limits) -> Self {
-        Self { limits, bucket: Mutex::new((limits.rate.unwrap_or(0.0).max(1.0), Instant::now())) }
+    pub fn new(limits: Limits, default_in_flight: Option<u64>) -> Self {
+        Self {
+            limits,
+            bucket: Mutex::new((limits.rate.unwrap_or(0.0).max(1.0), Instant::now())),
+            max_in_flight: limits.max_in_flight.or(default_in_flight),
+            in_flight: AtomicU64::new(0),
+            counters: Counters::default(),
+        }
+    }
+
+    /// A slot among the tenant's requests in flight, or why not.
+    pub fn enter(self: &Arc<Self>) -> Result<InFlight, String> {
+        let before = self.in_flight.fetch_add(1, Ordering::AcqRel);
+        let slot = InFlight(self.clone());
+        match self.max_in_flight {
+            Some(max) if before >= max => Err(format!(
+                "the tenant has {before} requests in the inference queue; its share is {max} (retry later)"
+            )),
+            _ => Ok(slot),
+        }
+    }
+
+    pub fn refused(&self, why: Refusal) {
+        self.counters.refused[why as usize].fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// This tenant's Prometheus samples.
+    pub fn render(&self, tenant: &str, out: &mut String) {
+        use std::fmt::Write;
+        let c = &self.counters;
+        let _ =
+            writeln!(out, "loopd_tenant_requests_total{{tenant=\"{tenant}\"}} {}", c.requests.load(Ordering::Relaxed));
+        let _ = writeln!(
+            out,
+            "loopd_tenant_frames_added_total{{tenant=\"{tenant}\"}} {}",
+            c.frames_added.load(Ordering::Relaxed)
+        );
+        let _ =
+            writeln!(out, "loopd_tenant_in_flight{{tenant=\"{tenant}\"}} {}", self.in_flight.load(Ordering::Relaxed));
+        for r in Refusal::ALL {
+            let n = c.refused[r as usize].load(Ordering::Relaxed);
+            let _ = writeln!(out, "loopd_tenant_refused_total{{tenant=\"{tenant}\",limit=\"{}\"}} {n}", r.label());
+        }
     }
 
     /// One request's token, or why not.
@@ -59,12 +153,25 @@ mod tests {
 
     #[test]
     fn the_bucket_allows_a_second_of_burst_then_the_rate() {
-        let q = Quota::new(Limits { rate: Some(5.0), ..Default::default() });
+        let q = Quota::new(Limits { rate: Some(5.0), ..Default::default() }, None);
         let allowed = (0..20).filter(|_| q.take().is_ok()).count();
         assert_eq!(allowed, 5);
         std::thread::sleep(std::time::Duration::from_millis(450));
         assert!(q.take().is_ok(), "refilled at 5 per second");
-        assert!(Quota::new(Limits::default()).take().is_ok());
+        assert!(Quota::new(Limits::default(), None).take().is_ok());
         assert!(Limits { rate: Some(f64::NAN), ..Default::default() }.validate().is_err());
+    }
+
+    #[test]
+    fn in_flight_slots_are_shared_and_freed() {
+        let q = Arc::new(Quota::new(Limits::default(), Some(2)));
+        let (a, b) = (q.enter().unwrap(), q.enter().unwrap());
+        assert!(q.enter().is_err(), "a third request over a share of 2");
+        drop(a);
+        let _c = q.enter().expect("a slot freed by the first");
+        drop(b);
+        let own = Arc::new(Quota::new(Limits { max_in_flight: Some(1), ..Default::default() }, Some(8)));
+        let _d = own.enter().unwrap();
+        assert!(own.enter().is_err(), "the tenant's own limit wins over the default");
     }
 }

@@ -31,6 +31,8 @@ pub enum AuthError {
 pub struct AuthConfig {
     /// The admin key (from a file or the environment, never a flag value).
     pub admin_key: Option<String>,
+    /// Requests of one tenant in flight at once unless its limits say otherwise (None: no cap).
+    pub tenant_in_flight: Option<u64>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -72,6 +74,7 @@ pub struct Auth {
     /// By tenant name, with the quota its requests share.
     tenants: RwLock<HashMap<String, (TenantRecord, Arc<Quota>)>>,
     store: Arc<Store>,
+    tenant_in_flight: Option<u64>,
 }
 
 fn valid_tenant(name: &str) -> bool {
@@ -88,12 +91,12 @@ impl Auth {
         for (name, record) in store.tenants()? {
             let r: TenantRecord = serde_json::from_slice(&record)
                 .map_err(|e| AuthError::Store(StoreError::Storage(format!("tenant '{name}': {e}"))))?;
-            let quota = Arc::new(Quota::new(r.limits));
+            let quota = Arc::new(Quota::new(r.limits, cfg.tenant_in_flight));
             tenants.insert(name, (r, quota));
         }
         let admin = cfg.admin_key.as_deref().map(str::trim).filter(|k| !k.is_empty()).map(keys::digest);
         let enabled = admin.is_some() || !tenants.is_empty();
-        Ok(Self { enabled, admin, tenants: RwLock::new(tenants), store })
+        Ok(Self { enabled, admin, tenants: RwLock::new(tenants), store, tenant_in_flight: cfg.tenant_in_flight })
     }
 
     pub fn enabled(&self) -> bool {
@@ -177,7 +180,8 @@ impl Auth {
         };
         self.save(&record).await?;
         let info = TenantInfo::from(&record);
-        self.tenants.write().insert(name.to_string(), (record, Arc::new(Quota::new(limits))));
+        let quota = Arc::new(Quota::new(limits, self.tenant_in_flight));
+        self.tenants.write().insert(name.to_string(), (record, quota));
         tracing::info!(tenant = name, key_id = %info.key_id, "tenant key issued");
         Ok((info, key))
     }
@@ -186,6 +190,25 @@ impl Auth {
         let mut v: Vec<TenantInfo> = self.tenants.read().values().map(|(r, _)| TenantInfo::from(r)).collect();
         v.sort_by(|a, b| a.name.cmp(&b.name));
         v
+    }
+
+    /// Per-tenant requests, frames added, requests in flight and refusals by limit (Prometheus).
+    pub fn render_metrics(&self) -> String {
+        let mut out = String::from(concat!(
+            "# HELP loopd_tenant_requests_total Writes and queries a tenant's key made (checked against its limits).\n",
+            "# TYPE loopd_tenant_requests_total counter\n",
+            "# HELP loopd_tenant_frames_added_total Frames a tenant stored.\n# TYPE loopd_tenant_frames_added_total counter\n",
+            "# HELP loopd_tenant_in_flight A tenant's requests being embedded or searched now.\n",
+            "# TYPE loopd_tenant_in_flight gauge\n",
+            "# HELP loopd_tenant_refused_total Requests refused by a tenant limit.\n# TYPE loopd_tenant_refused_total counter\n",
+        ));
+        let tenants = self.tenants.read();
+        let mut names: Vec<&String> = tenants.keys().collect();
+        names.sort();
+        for name in names {
+            tenants[name].1.render(name, &mut out);
+        }
+        out
     }
 
     /// Revokes a tenant's key, by tenant name or key id; its sessions stay.

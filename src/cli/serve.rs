@@ -104,6 +104,10 @@ pub struct ServeArgs {
     /// A CA (PEM) that every client certificate must chain to: mutual TLS for robots.
     #[arg(long, env = "LOOPD_TLS_CLIENT_CA", requires = "tls_cert")]
     pub tls_client_ca: Option<PathBuf>,
+    /// The share of --queue-capacity one tenant's requests may hold at once (unless its limits
+    /// set max_in_flight), so a flooding tenant cannot starve the others; 1 = no cap.
+    #[arg(long, env = "LOOPD_TENANT_QUEUE_SHARE", default_value_t = 0.5)]
+    pub tenant_queue_share: f64,
     /// Serve without keys on a non-loopback address (refused otherwise).
     #[arg(long, env = "LOOPD_INSECURE")]
     pub insecure: bool,
@@ -171,7 +175,7 @@ impl ServeArgs {
             search: SearchConfig::default(),
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs.clamp(0.0, 3600.0)),
             storage_retry: Duration::from_secs_f64(self.storage_retry_secs.clamp(0.1, 3600.0)),
-            auth: AuthConfig { admin_key: None },
+            auth: AuthConfig { admin_key: None, tenant_in_flight: self.tenant_in_flight() },
             insecure: self.insecure,
             tls: match (&self.tls_cert, &self.tls_key) {
                 (Some(cert), Some(key)) => {
@@ -197,11 +201,19 @@ impl ServeArgs {
     }
 }
 
+impl ServeArgs {
+    /// One tenant's requests in flight at once: its share of the queue (at least 1).
+    fn tenant_in_flight(&self) -> Option<u64> {
+        let share = if self.tenant_queue_share.is_finite() { self.tenant_queue_share.clamp(0.0, 1.0) } else { 1.0 };
+        (share < 1.0).then(|| ((self.queue_capacity as f64 * share).ceil() as u64).max(1))
+    }
+}
+
 pub fn run(a: ServeArgs) -> Result<ExitCode> {
     let model = a.model.load()?;
     let cfg = ServerConfig {
         search: a.search_config(model.device)?,
-        auth: AuthConfig { admin_key: a.admin_key()? },
+        auth: AuthConfig { admin_key: a.admin_key()?, tenant_in_flight: a.tenant_in_flight() },
         ..a.server_config()
     };
     let rt = tokio::runtime::Runtime::new()?;

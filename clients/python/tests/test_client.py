@@ -1,0 +1,141 @@
+"""The Python client against a real `loopd serve` with TLS and keys, on real corridor frames."""
+from __future__ import annotations
+
+import threading
+import time
+
+import grpc
+import pytest
+from conftest import Server, corridor, corridor_truth
+
+from loopd_client import Client, Frame, RetryPolicy, query_options
+
+REFS = 40
+
+
+def test_tls_key_stream_and_query_find_the_known_places(server):
+    key = server.tenant("fleet")
+    with Client(server.grpc, key=key, ca=server.ca) as c:
+        c.create_session("corridor", exist_ok=True)
+        again = c.create_session("corridor", exist_ok=True)
+        assert again.id == "corridor"
+        frames = [Frame(image=img, timestamp=float(i), frame_id=i) for i, img in enumerate(corridor("ref", REFS))]
+        answers = list(c.stream("corridor", "mapper", frames, query_options(verify=False)))
+        assert [a.frame_id for a in answers] == list(range(REFS))
+        assert all(a.error_code == 0 for a in answers)
+        assert c.get_session("corridor").frames == REFS
+
+        truth = corridor_truth()
+        hits = 0
+        for q, img in enumerate(corridor("query", 20)):
+            matches = c.query("corridor", "visitor", image=img, options=query_options(k=1, verify=False))
+            hits += matches[0].frame_id in truth[q]
+        # The plain backbone on corridor: most first candidates are the right place.
+        assert hits >= 14, f"{hits}/20 first candidates in the ground truth"
+
+        response = c.add_and_query("corridor", "visitor", Frame(image=corridor("query", 1)[0], frame_id=5000),
+                                   query_options(k=3, scope="other", verify=False))
+        assert response.frame_id == 5000
+        assert response.matches[0].robot_id == "mapper"
+        assert response.matches[0].frame_id in truth[0]
+        assert c.retries == 0
+
+
+def test_bad_and_foreign_keys_are_refused_without_retries(server):
+    owner, other = server.tenant("owner"), server.tenant("other")
+    with Client(server.grpc, key=owner, ca=server.ca) as c:
+        dim = c.create_session("private", exist_ok=True).dim
+        c.add_frame("private", "r", Frame(descriptor=[1.0] * dim, timestamp=1.0))
+    for key, code in [(None, grpc.StatusCode.UNAUTHENTICATED),
+                      ("lpd_000000000000_" + "0" * 64, grpc.StatusCode.UNAUTHENTICATED),
+                      (other, grpc.StatusCode.NOT_FOUND)]:
+        with Client(server.grpc, key=key, ca=server.ca) as c:
+            with pytest.raises(grpc.RpcError) as e:
+                c.get_session("private")
+            assert e.value.code() == code
+            assert c.retries == 0
+    with Client(server.grpc, key=owner, ca=server.ca) as c:
+        assert c.get_session("private").frames == 1
+
+
+def test_tenants_are_managed_with_the_admin_key(server):
+    from conftest import ADMIN_KEY
+    with Client(server.grpc, key=ADMIN_KEY, ca=server.ca) as admin:
+        tenant, key = admin.create_tenant("py-admin", rate=100.0, max_in_flight=3)
+        assert tenant.limits.max_in_flight == 3 and key.startswith("lpd_")
+        assert any(t.name == "py-admin" and not t.revoked for t in admin.list_tenants())
+        with Client(server.grpc, key=key, ca=server.ca) as robot:
+            robot.create_session("mine", exist_ok=True)
+            with pytest.raises(grpc.RpcError) as e:
+                robot.list_tenants()
+            assert e.value.code() == grpc.StatusCode.PERMISSION_DENIED
+            assert admin.revoke_tenant("py-admin").revoked
+            with pytest.raises(grpc.RpcError) as e:
+                robot.list_sessions()
+            assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED
+
+
+def test_untrusted_server_certificate_is_refused(server, tmp_path):
+    from conftest import make_certs
+    make_certs(tmp_path)  # another CA
+    with Client(server.grpc, key=server.tenant("nobody"), ca=tmp_path / "ca.pem",
+                retry=RetryPolicy(deadline=1.0)) as c:
+        with pytest.raises(grpc.RpcError) as e:
+            c.list_sessions()
+        assert e.value.code() == grpc.StatusCode.UNAVAILABLE
+
+
+def test_rate_limited_writes_are_retried_until_stored(server):
+    key = server.tenant("slow", rate=5.0)
+    with Client(server.grpc, key=key, ca=server.ca) as c:
+        dim = c.create_session("rated", exist_ok=True).dim
+        start = time.monotonic()
+        ids = [c.add_frame("rated", "r", Frame(descriptor=[float(i % 7 + 1)] + [1.0] * (dim - 1), timestamp=float(i)))
+               for i in range(25)]
+        elapsed = time.monotonic() - start
+        assert len(set(ids)) == 25
+        assert c.retries > 0, "25 writes at 5/s never hit the limit"
+        assert elapsed > 2.0, f"25 writes at 5/s took {elapsed:.1f} s"
+        assert c.get_session("rated").frames == 25
+
+
+def test_stream_resumes_after_a_server_restart_exactly_once(tmp_path):
+    server = Server(tmp_path)
+    try:
+        key = server.tenant("robots")
+        with Client(server.grpc, key=key, ca=server.ca) as c:
+            c.create_session("restart", exist_ok=True)
+            images = corridor("ref", 60)
+
+            def frames():
+                for i, img in enumerate(images):
+                    if i == 25:
+                        threading.Thread(target=server.restart).start()  # SIGKILL mid-stream
+                    time.sleep(0.05)
+                    yield Frame(image=img, timestamp=float(i), frame_id=100 + i)
+
+            answers = list(c.stream("restart", "mapper", frames(), query_options(verify=False), window=8))
+            assert [a.frame_id for a in answers] == [100 + i for i in range(60)]
+            assert all(a.error_code == 0 for a in answers), [a.error for a in answers if a.error_code]
+            assert c.retries > 0, "the stream never had to reconnect"
+            assert any(a.resent for a in answers)
+            # Exactly once: every acknowledged frame is stored, none twice.
+            assert c.get_session("restart").frames == 60
+            for i in (0, 24, 25, 30, 59):  # a query on a frame id that is not stored is NOT_FOUND
+                c.query("restart", "mapper", frame_id=100 + i, options=query_options(k=1, verify=False))
+    finally:
+        server.stop()
+
+
+def test_calls_wait_for_a_server_that_is_starting(tmp_path):
+    server = Server(tmp_path)
+    key = server.tenant("patient")
+    server.kill()
+    try:
+        with Client(server.grpc, key=key, ca=server.ca, retry=RetryPolicy(deadline=120)) as c:
+            threading.Timer(1.0, lambda: server.start(wait=False)).start()
+            assert c.create_session("later", exist_ok=True).id == "later"
+            assert c.retries > 0
+    finally:
+        time.sleep(1.5)
+        server.stop()
