@@ -1,10 +1,12 @@
 //! Tenants and API keys (issue #13) against the real server on loopback, over real gRPC and HTTP
-//! clients: two tenants with the same session id, every session route tried by the other
-//! tenant (NOT_FOUND / 404, never a hint), bad keys of every kind, admin-only routes, open
+//! clients with TLS on: two tenants with the same session id, every session route tried by the
+//! other tenant (NOT_FOUND / 404, never a hint), bad keys of every kind, admin-only routes, open
 //! health, keys kept across a restart, and the refusal to serve beyond loopback without keys.
 mod common;
+use common::certs::{write, Ca};
 use common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
+use loopd::api::tls::TlsFiles;
 use loopd::auth::AuthConfig;
 use loopd::engine::EngineConfig;
 use loopd::pb;
@@ -25,12 +27,54 @@ async fn start(dir: &std::path::Path) -> RunningServer {
     RunningServer::start(cfg, imagenet_model()).await.unwrap()
 }
 
+/// The CA of each server started with TLS here, by gRPC and HTTP address: its clients use TLS.
+static TLS_CA: std::sync::Mutex<Vec<(std::net::SocketAddr, String)>> = std::sync::Mutex::new(Vec::new());
+
+fn ca_of(addr: std::net::SocketAddr) -> Option<String> {
+    TLS_CA.lock().unwrap().iter().find(|(a, _)| *a == addr).map(|(_, ca)| ca.clone())
+}
+
+/// A server with TLS on both APIs (a certificate for 127.0.0.1 from a CA made here).
+async fn start_tls(dir: &std::path::Path) -> RunningServer {
+    let ca = Ca::new("tenants test CA");
+    let (cert, key) = ca.issue(&["localhost", "127.0.0.1"]);
+    let tls = TlsFiles { cert: write(dir, "server.pem", &cert), key: write(dir, "server.key", &key), client_ca: None };
+    let cfg = ServerConfig {
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        auth: AuthConfig { admin_key: Some(ADMIN.into()), ..Default::default() },
+        tls: Some(tls),
+        ..ServerConfig::on_loopback(dir.to_path_buf())
+    };
+    let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
+    let pem = ca.cert.pem();
+    write(dir, "ca.pem", &pem);
+    TLS_CA.lock().unwrap().extend([(server.grpc_addr, pem.clone()), (server.http_addr, pem)]);
+    server
+}
+
+/// A gRPC channel to a server of this file (TLS where it was started with TLS).
+async fn channel(addr: std::net::SocketAddr) -> Channel {
+    let Some(ca) = ca_of(addr) else {
+        return tonic::transport::Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap();
+    };
+    let tls = tonic::transport::ClientTlsConfig::new()
+        .ca_certificate(tonic::transport::Certificate::from_pem(ca))
+        .domain_name("localhost");
+    tonic::transport::Endpoint::from_shared(format!("https://{addr}"))
+        .unwrap()
+        .tls_config(tls)
+        .unwrap()
+        .connect()
+        .await
+        .unwrap()
+}
+
 /// What adds a caller's key to each gRPC call.
 type AddKey = Box<dyn FnMut(tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> + Send>;
 type Authed = LoopdClient<InterceptedService<Channel, AddKey>>;
 
 async fn grpc(addr: std::net::SocketAddr, key: Option<&str>) -> Authed {
-    let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap();
+    let channel = channel(addr).await;
     let header = key.map(|k| format!("Bearer {k}").parse::<tonic::metadata::MetadataValue<_>>().unwrap());
     let add: AddKey = Box::new(move |mut req: tonic::Request<()>| {
         if let Some(h) = &header {
@@ -59,6 +103,20 @@ struct Http {
 }
 
 impl Http {
+    fn new(server: &RunningServer) -> Self {
+        let addr = server.http_addr;
+        match ca_of(addr) {
+            None => Http { c: reqwest::Client::new(), base: format!("http://{addr}") },
+            Some(ca) => Http {
+                c: reqwest::Client::builder()
+                    .add_root_certificate(reqwest::Certificate::from_pem(ca.as_bytes()).unwrap())
+                    .build()
+                    .unwrap(),
+                base: format!("https://{addr}"),
+            },
+        }
+    }
+
     async fn call(
         &self,
         method: &str,
@@ -82,8 +140,11 @@ impl Http {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tenants_see_only_their_own_sessions_on_every_route() {
     let dir = tempfile::tempdir().unwrap();
-    let server = start(dir.path()).await;
-    let http = Http { c: reqwest::Client::new(), base: format!("http://{}", server.http_addr) };
+    let server = start_tls(dir.path()).await;
+    let http = Http::new(&server);
+    assert!(http.base.starts_with("https://"));
+    let plain = reqwest::Client::new().get(format!("http://{}/healthz", server.http_addr)).send().await;
+    assert!(plain.is_err() || plain.unwrap().status() != 200, "TLS on: plain HTTP gets no answer");
     let dim = server.service.engine.info().dim;
 
     // A session of the default tenant, from before tenants: the admin key acts for it.
@@ -223,12 +284,7 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
     for path in ["/healthz", "/readyz"] {
         assert_eq!(http.c.get(format!("{}{path}", http.base)).send().await.unwrap().status(), 200, "{path}");
     }
-    let channel = tonic::transport::Endpoint::from_shared(format!("http://{}", server.grpc_addr))
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
-    let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel(server.grpc_addr).await);
     health
         .check(tonic_health::pb::HealthCheckRequest { service: String::new() })
         .await
@@ -285,11 +341,14 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
 
     // The command line: `loopd tenant create|list|revoke` through the admin routes.
     let server_url = http.base.clone();
+    let ca_file = dir.path().join("ca.pem");
     let cli = move |args: &[&str]| {
         let out = loopd_bin()
             .arg("tenant")
             .args(args)
             .args(["--server", &server_url])
+            .arg("--ca")
+            .arg(&ca_file)
             .env("LOOPD_ADMIN_KEY", ADMIN)
             .output()
             .unwrap();
@@ -308,7 +367,7 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
     // Keys and ownership survive a restart.
     tokio::time::sleep(Duration::from_millis(500)).await; // the job on acme's session finishes
     server.shutdown().await.unwrap();
-    let server = start(dir.path()).await;
+    let server = start_tls(dir.path()).await;
     let mut acme_g = grpc(server.grpc_addr, Some(&acme_key)).await;
     let secret = acme_g.get_session(pb::GetSessionRequest { id: "secret".into() }).await.unwrap().into_inner();
     assert!(secret.frames >= 5);
@@ -344,7 +403,7 @@ async fn a_flooding_tenant_cannot_starve_another() {
         ..ServerConfig::on_loopback(dir.path().to_path_buf())
     };
     let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
-    let http = Http { c: reqwest::Client::new(), base: format!("http://{}", server.http_addr) };
+    let http = Http::new(&server);
     let mut keys = Vec::new();
     for name in ["flood", "calm"] {
         let (_, t) = http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": name }))).await;

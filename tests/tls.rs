@@ -3,6 +3,7 @@
 //! another CA refused, plain text refused, and a SIGHUP reload of the certificate that new
 //! connections see while an open stream goes on.
 mod common;
+use common::certs::{write, Ca};
 use common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::api::tls::TlsFiles;
@@ -10,35 +11,11 @@ use loopd::auth::AuthConfig;
 use loopd::engine::EngineConfig;
 use loopd::pb;
 use loopd::pb::loopd_client::LoopdClient;
-use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, KeyPair};
-use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity};
 
 const ADMIN: &str = "admin-key-for-the-tls-tests-0123456789";
-
-struct Ca {
-    cert: rcgen::Certificate,
-    key: KeyPair,
-}
-
-impl Ca {
-    fn new(name: &str) -> Self {
-        let key = KeyPair::generate().unwrap();
-        let mut p = CertificateParams::new(Vec::<String>::new()).unwrap();
-        p.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-        p.distinguished_name.push(DnType::CommonName, name);
-        Self { cert: p.self_signed(&key).unwrap(), key }
-    }
-
-    /// A leaf certificate for `names` and its key, both PEM.
-    fn issue(&self, names: &[&str]) -> (String, String) {
-        let key = KeyPair::generate().unwrap();
-        let p = CertificateParams::new(names.iter().map(|n| n.to_string()).collect::<Vec<_>>()).unwrap();
-        (p.signed_by(&key, &self.cert, &self.key).unwrap().pem(), key.serialize_pem())
-    }
-}
 
 fn der(pem: &str) -> Vec<u8> {
     use rustls::pki_types::pem::PemObject;
@@ -93,12 +70,6 @@ async fn served_certificate(addr: std::net::SocketAddr, ca: &str, client: &(Stri
         .await
         .unwrap();
     tls.get_ref().1.peer_certificates().unwrap()[0].to_vec()
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> std::path::PathBuf {
-    let p = dir.join(name);
-    std::fs::write(&p, text).unwrap();
-    p
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

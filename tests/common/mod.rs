@@ -1,5 +1,6 @@
 //! Paths and loaders shared by the integration tests (real data, real weights).
 #![allow(dead_code)]
+pub mod certs;
 pub mod proc;
 use loopd::model::config::ModelConfig;
 use loopd::model::device::DType;
