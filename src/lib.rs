@@ -1,12 +1,14 @@
 //! loopd: loop-closure detection as a service.
 //!
 //! Layers, dependencies pointing one way: `api` -> `engine` -> `model`, `store`; `verify` (local
-//! features and geometry) is used by `api` and `eval`; `train` (heads, whitening) uses `eval`.
+//! features and geometry) is used by `api` and `eval`; `train` (heads, whitening) uses `eval`;
+//! `export` (a session's loop graph as files) is used by `api`.
 pub mod api;
 pub mod auth;
 pub mod cli;
 pub mod engine;
 pub mod eval;
+pub mod export;
 pub mod files;
 pub mod model;
 pub mod pb;

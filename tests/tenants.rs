@@ -201,6 +201,9 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
             Some(json!({ "robot_id": "b", "timestamp": 1, "descriptor": d })),
         ),
         ("POST", "/v1/sessions/secret/sequences".into(), None),
+        ("GET", "/v1/sessions/secret/loops".into(), None),
+        ("GET", "/v1/sessions/secret/export".into(), None),
+        ("POST", "/v1/sessions/secret/loops/0/1/verdict".into(), Some(json!({ "accepted": false }))),
         ("GET", format!("/v1/jobs/{job_id}"), None),
         ("GET", "/v1/sessions/acme%2Fsecret".into(), None),
         ("GET", "/v1/sessions/legacy".into(), None),
@@ -223,6 +226,11 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
     };
     assert_eq!(blue_g.query(q).await.unwrap_err().code(), nf);
     assert_eq!(blue_g.delete_session(pb::DeleteSessionRequest { id: "secret".into() }).await.unwrap_err().code(), nf);
+    let loops = pb::ListLoopsRequest { session_id: "secret".into(), ..Default::default() };
+    assert_eq!(blue_g.list_loops(loops).await.unwrap_err().code(), nf);
+    let verdict =
+        pb::SetLoopVerdictRequest { session_id: "secret".into(), query_frame: 1, match_frame: 0, ..Default::default() };
+    assert_eq!(blue_g.set_loop_verdict(verdict).await.unwrap_err().code(), nf);
     let mut answers =
         blue_g.stream_frames(tokio_stream::iter(vec![descriptor_frame("secret", dim, 9)])).await.unwrap().into_inner();
     assert_eq!(answers.message().await.unwrap().unwrap().error_code, nf as i32);

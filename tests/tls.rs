@@ -142,6 +142,26 @@ async fn mutual_tls_on_both_apis_and_a_reload_on_sighup() {
     let plain = reqwest::get(format!("http://{}/healthz", server.http_addr)).await;
     assert!(plain.is_err() || plain.unwrap().status() != 200, "plain HTTP on the TLS port");
 
+    // `loopd tenant` on the mTLS server: with the robot's certificate it lists, without it fails.
+    let robot_cert = write(dir.path(), "robot.pem", &robot.0);
+    let robot_key = write(dir.path(), "robot.key", &robot.1);
+    let (server_url, ca_file) = (format!("https://127.0.0.1:{}", server.http_addr.port()), files.client_ca.clone());
+    let listed = tokio::task::spawn_blocking(move || {
+        let run = |with_cert: bool| {
+            let mut c = loopd_bin();
+            c.args(["tenant", "list", "--server", &server_url]).arg("--ca").arg(ca_file.as_ref().unwrap());
+            if with_cert {
+                c.arg("--client-cert").arg(&robot_cert).arg("--client-key").arg(&robot_key);
+            }
+            c.env("LOOPD_ADMIN_KEY", ADMIN).output().unwrap()
+        };
+        (run(true), run(false))
+    })
+    .await
+    .unwrap();
+    assert!(listed.0.status.success(), "{}", String::from_utf8_lossy(&listed.0.stderr));
+    assert!(!listed.1.status.success(), "loopd tenant without a client certificate on an mTLS server");
+
     // A new certificate, then SIGHUP: new connections get it, the open stream goes on.
     let before = served_certificate(server.http_addr, &ca_pem, &robot).await;
     assert_eq!(before, der(&server_cert.0));

@@ -72,7 +72,9 @@ impl From<StoreError> for ApiError {
     fn from(e: StoreError) -> Self {
         let msg = e.to_string();
         match e {
-            StoreError::SessionNotFound(_) | StoreError::FrameNotFound(..) => ApiError::NotFound(msg),
+            StoreError::SessionNotFound(_) | StoreError::FrameNotFound(..) | StoreError::LoopNotFound(_) => {
+                ApiError::NotFound(msg)
+            }
             StoreError::SessionExists(_) | StoreError::FrameExists(..) => ApiError::AlreadyExists(msg),
             StoreError::InvalidArgument(_) => ApiError::InvalidArgument(msg),
             StoreError::Storage(_) => ApiError::Internal(msg),

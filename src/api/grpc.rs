@@ -262,6 +262,16 @@ impl pb::loopd_server::Loopd for GrpcApi {
         Ok(Response::new(pb::AddAndQueryResponse { frame_id, matches: matches_to_pb(m), ..Default::default() }))
     }
 
+    async fn list_loops(&self, req: Request<pb::ListLoopsRequest>) -> Result<Response<pb::ListLoopsResponse>, Status> {
+        let caller = caller(&req)?;
+        Ok(Response::new(super::grpc_loops::list(&self.service, caller, req.into_inner())?))
+    }
+
+    async fn set_loop_verdict(&self, req: Request<pb::SetLoopVerdictRequest>) -> Result<Response<pb::Loop>, Status> {
+        let caller = caller(&req)?;
+        Ok(Response::new(super::grpc_loops::set_verdict(&self.service, caller, req.into_inner()).await?))
+    }
+
     type StreamFramesStream = FrameStream;
 
     async fn stream_frames(

@@ -42,6 +42,9 @@ pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
         .route("/v1/sessions/{id}/frames/{frame_id}", get(get_frame))
         .route("/v1/sessions/{id}/query", post(query))
         .route("/v1/sessions/{id}/add_and_query", post(add_and_query))
+        .route("/v1/sessions/{id}/loops", get(super::http_loops::list_loops))
+        .route("/v1/sessions/{id}/export", get(super::http_loops::export))
+        .route("/v1/sessions/{id}/loops/{query_frame}/{match_frame}/verdict", post(super::http_loops::set_verdict))
         .route("/v1/jobs/{job_id}", get(job_status))
         .route("/v1/tenants", post(create_tenant).get(list_tenants))
         .route("/v1/tenants/{name}", axum::routing::delete(revoke_tenant))
@@ -65,6 +68,10 @@ async fn ready(State(s): State<Arc<AppState>>) -> Result<&'static str, ApiError>
 async fn metrics(State(s): State<Arc<AppState>>) -> impl IntoResponse {
     let mut body = s.service.engine.metrics().render_prometheus();
     body.push_str(&s.auth.render_metrics());
+    let not_kept = s.service.loops_not_kept.load(std::sync::atomic::Ordering::Relaxed);
+    body.push_str(&format!(
+        "# HELP loopd_loops_not_kept_total Answers whose loop candidates could not be kept.\n# TYPE loopd_loops_not_kept_total counter\nloopd_loops_not_kept_total {not_kept}\n"
+    ));
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], body)
 }
 
@@ -189,7 +196,7 @@ struct FrameFields {
     image: Option<Bytes>,
 }
 
-fn parse_u64(name: &str, v: &str) -> Result<u64, ApiError> {
+pub(super) fn parse_u64(name: &str, v: &str) -> Result<u64, ApiError> {
     v.parse().map_err(|_| ApiError::InvalidArgument(format!("{name} must be a non-negative integer, got '{v}'")))
 }
 
@@ -290,7 +297,7 @@ fn body_error(status: StatusCode, text: String) -> ApiError {
     }
 }
 
-fn json_error(e: axum::extract::rejection::JsonRejection) -> ApiError {
+pub(super) fn json_error(e: axum::extract::rejection::JsonRejection) -> ApiError {
     body_error(e.status(), e.body_text())
 }
 

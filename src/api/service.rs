@@ -2,6 +2,7 @@
 //! reach the engine, the store and the jobs through nothing else.
 use super::error::ApiError;
 use super::jobs::{JobStatus, Jobs, SequenceRequest};
+use super::loops::{loop_records, QueryFrame};
 use crate::engine::Engine;
 use crate::model::network::Variant;
 use crate::store::query::{LoopQuery, Pose, Scope, MAX_K};
@@ -23,6 +24,8 @@ pub struct LoopService {
     pub store: Arc<Store>,
     pub jobs: Arc<Jobs>,
     pub verifier: Verifier,
+    /// Answers whose candidates could not be kept (storage failed after the frame was stored).
+    pub loops_not_kept: Arc<std::sync::atomic::AtomicU64>,
 }
 
 /// Where a query's past comes from for sequence verification.
@@ -214,7 +217,7 @@ fn intrinsics(c: &Camera) -> Intrinsics {
 impl LoopService {
     pub fn new(engine: Engine, store: Arc<Store>, max_jobs: usize, verify: VerifyConfig) -> Self {
         let jobs = Arc::new(Jobs::new(max_jobs, store.clone()));
-        let service = Self { engine, store, jobs, verifier: Verifier::new(verify) };
+        let service = Self { engine, store, jobs, verifier: Verifier::new(verify), loops_not_kept: Default::default() };
         service.report_foreign_sessions();
         service
     }
@@ -441,7 +444,11 @@ impl LoopService {
                 };
                 let d = s.descriptor(id)?;
                 let q = LoopQuery { exclude_frame: Some(id), ..q };
-                Ok(self.search(&s, d, &features, History::Stored(id), &q).await?.0)
+                let matches = self.search(&s, d, &features, History::Stored(id), &q).await?.0;
+                let (header, _) = s.frame(id)?;
+                let asked = QueryFrame { id, robot: &header.robot_id, time: header.timestamp };
+                self.keep_loops(&s, asked, &matches).await;
+                Ok(matches)
             }
             QueryTarget::Content(c) => {
                 let p = self.prepare(&s, c, q.verify.geometric).await?;
@@ -472,7 +479,14 @@ impl LoopService {
         } else {
             Prepared { features: QueryFeatures::None(String::new()), ..prepared }
         };
-        let id = self.store_frame(&s, f.into_new_frame(t, prepared)).await?;
+        // The candidates answered are kept with the frame, in its flush.
+        let robot = f.robot_id.clone();
+        let keep = |ids: &[u64]| match ids.first() {
+            Some(&id) => loop_records(QueryFrame { id, robot: &robot, time: t }, &matches),
+            None => Vec::new(),
+        };
+        let ids = self.store.add_frames_keeping(&s, vec![f.into_new_frame(t, prepared)], keep).await?;
+        let id = ids.first().copied().ok_or_else(|| ApiError::Internal("no frame id returned".into()))?;
         // Its best matches by descriptor: the candidates it votes for in later sequence checks.
         s.set_votes(id, votes);
         Ok((id, matches))

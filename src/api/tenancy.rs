@@ -6,6 +6,7 @@ use super::jobs::{JobStatus, SequenceRequest};
 use super::service::{CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
 use crate::auth::quota::{InFlight, Refusal};
 use crate::auth::Caller;
+use crate::store::loops::{LoopFilter, LoopRecord, Page, Transform};
 use crate::store::record::FrameHeader;
 use crate::store::SessionInfo;
 
@@ -104,6 +105,26 @@ impl Scoped<'_> {
 
     pub fn frame(&self, session: &str, frame_id: u64) -> Result<FrameHeader, ApiError> {
         self.service.frame(&self.sid(session)?, frame_id)
+    }
+
+    pub fn loops(&self, session: &str, filter: &LoopFilter) -> Result<Page, ApiError> {
+        self.service.loops(&self.sid(session)?, filter)
+    }
+
+    pub fn snapshot(&self, session: &str) -> Result<crate::export::Snapshot, ApiError> {
+        self.service.snapshot(&self.sid(session)?)
+    }
+
+    pub async fn set_verdict(
+        &self,
+        session: &str,
+        (query, matched): (u64, u64),
+        accepted: bool,
+        relative_pose: Option<Transform>,
+        covariance: Option<Vec<f64>>,
+    ) -> Result<LoopRecord, ApiError> {
+        let sid = self.sid(session)?;
+        self.service.set_verdict(&sid, query, matched, accepted, relative_pose, covariance).await
     }
 
     pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {

@@ -2,6 +2,7 @@
 mod classify;
 mod embed;
 mod eval;
+mod export;
 mod images;
 mod serve;
 mod tenant;
@@ -44,6 +45,9 @@ pub enum Command {
     Train(train::TrainArgs),
     /// Tenants and their API keys, through a running server (admin key).
     Tenant(tenant::TenantArgs),
+    /// A session's loop graph (frames.csv, loops.csv, graph.g2o, TUM trajectories) as a tar,
+    /// through a running server.
+    Export(export::ExportArgs),
 }
 
 /// The heads shipped in the repository (trained on the real data here, see docs/training.md).
@@ -134,5 +138,6 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Eval(a) => eval::run(a),
         Command::Train(a) => train::run(a),
         Command::Tenant(a) => tenant::run(a),
+        Command::Export(a) => export::run(a),
     }
 }

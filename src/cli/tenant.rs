@@ -18,6 +18,12 @@ pub struct TenantArgs {
     /// The CA (PEM) that signed the server's certificate, for an https:// server.
     #[arg(long, env = "LOOPD_CA", global = true)]
     ca: Option<PathBuf>,
+    /// A client certificate chain (PEM), for a server that requires one (--tls-client-ca).
+    #[arg(long, env = "LOOPD_CLIENT_CERT", global = true, requires = "client_key")]
+    client_cert: Option<PathBuf>,
+    /// The client certificate's private key (PEM).
+    #[arg(long, env = "LOOPD_CLIENT_KEY", global = true, requires = "client_cert")]
+    client_key: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -35,6 +41,10 @@ enum TenantCommand {
         /// Frames added and queries made per second (token bucket, one second of burst).
         #[arg(long)]
         rate: Option<f64>,
+        /// Its frames and queries being embedded or searched at once (default: the server's
+        /// --tenant-queue-share of its queue).
+        #[arg(long)]
+        max_in_flight: Option<u64>,
     },
     /// Every tenant: name, key id, created, revoked.
     List,
@@ -57,11 +67,19 @@ pub fn run(a: TenantArgs) -> Result<ExitCode> {
         let pem = std::fs::read(ca).with_context(|| format!("reading {}", ca.display()))?;
         client = client.add_root_certificate(reqwest::Certificate::from_pem(&pem).context("the CA file")?);
     }
+    if let (Some(cert), Some(key)) = (&a.client_cert, &a.client_key) {
+        let mut pem = std::fs::read(cert).with_context(|| format!("reading {}", cert.display()))?;
+        pem.push(b'\n');
+        pem.extend(std::fs::read(key).with_context(|| format!("reading {}", key.display()))?);
+        client = client.identity(reqwest::Identity::from_pem(&pem).context("the client certificate and key")?);
+    }
     let client = client.build().context("building the HTTP client")?;
     let base = a.server.trim_end_matches('/');
     let request = match &a.command {
-        TenantCommand::Create { name, max_sessions, max_frames, rate } => {
-            let limits = serde_json::json!({ "max_sessions": max_sessions, "max_frames": max_frames, "rate": rate });
+        TenantCommand::Create { name, max_sessions, max_frames, rate, max_in_flight } => {
+            let limits = serde_json::json!({
+                "max_sessions": max_sessions, "max_frames": max_frames, "rate": rate, "max_in_flight": max_in_flight
+            });
             client.post(format!("{base}/v1/tenants")).json(&serde_json::json!({ "name": name, "limits": limits }))
         }
         TenantCommand::List => client.get(format!("{base}/v1/tenants")),

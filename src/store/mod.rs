@@ -4,6 +4,7 @@ pub mod disk;
 pub mod durability;
 pub mod index;
 pub mod kernels;
+pub mod loops;
 pub mod query;
 pub mod record;
 mod records;
@@ -33,6 +34,8 @@ pub enum StoreError {
     SessionExists(String),
     #[error("frame {1} already exists in session '{0}'")]
     FrameExists(String, u64),
+    #[error("{0}")]
+    LoopNotFound(String),
     #[error("{0}")]
     InvalidArgument(String),
     #[error("storage failure: {0}")]
@@ -95,6 +98,8 @@ pub struct SessionInfo {
 struct Trees {
     frames: sled::Tree,
     features: sled::Tree,
+    /// Loop candidates answered for its frames (`loops.rs`).
+    loops: sled::Tree,
 }
 
 pub struct Session {
@@ -134,6 +139,10 @@ fn session_tree_name(id: &str) -> String {
 
 fn features_tree_name(id: &str) -> String {
     format!("features/{id}")
+}
+
+fn loops_tree_name(id: &str) -> String {
+    format!("loops/{id}")
 }
 
 /// Letters, digits, '-', '_' and '.', with at least one letter or digit ("." and ".." are path
@@ -299,6 +308,7 @@ impl Store {
             self.note(disk.sessions.remove(id.as_bytes()))?;
             self.note(disk.db.drop_tree(session_tree_name(id)))?;
             self.note(disk.db.drop_tree(features_tree_name(id)))?;
+            self.note(disk.db.drop_tree(loops_tree_name(id)))?;
         }
         self.durable().await
     }
@@ -307,6 +317,17 @@ impl Store {
     /// searchable right after its flush, on the flusher, whether or not the caller still waits:
     /// a dropped request cannot leave a frame on disk that the index does not know.
     pub async fn add_frames(&self, s: &Arc<Session>, frames: Vec<NewFrame>) -> Result<Vec<u64>, StoreError> {
+        self.add_frames_keeping(s, frames, |_| Vec::new()).await
+    }
+
+    /// As [`Store::add_frames`], with the loop candidates answered for them (made from their
+    /// ids) written in the same flush: kept exactly when the frames are.
+    pub async fn add_frames_keeping(
+        &self,
+        s: &Arc<Session>,
+        frames: Vec<NewFrame>,
+        loops: impl FnOnce(&[u64]) -> Vec<loops::LoopRecord>,
+    ) -> Result<Vec<u64>, StoreError> {
         self.health.writable()?;
         let mut prepared = Vec::with_capacity(frames.len());
         for mut f in frames {
@@ -316,6 +337,12 @@ impl Store {
         }
         let written = self.note(Self::write_frames(s, &prepared));
         let (written, added_bytes) = written?;
+        if let Err(e) = self.note(s.write_loops(&loops(&written))) {
+            for &id in &written {
+                let _ = s.remove(id);
+            }
+            return Err(e);
+        }
         // No await between the inserts and this: the publish is queued with them.
         let (session, ids) = (s.clone(), written.clone());
         let publish: durability::AfterFlush = Box::new(move |flushed| match flushed {
@@ -526,11 +553,14 @@ impl Session {
         self.index.write().set_votes(frame_id, votes);
     }
 
-    /// Takes a frame that was never acknowledged back off disk.
+    /// Takes a frame that was never acknowledged back off disk, with the loops kept for it.
     fn remove(&self, frame_id: u64) -> Result<(), StoreError> {
         let trees = self.trees()?;
         trees.frames.remove(frame_key(frame_id))?;
         trees.features.remove(frame_key(frame_id))?;
+        for key in trees.loops.scan_prefix(frame_key(frame_id)).keys() {
+            trees.loops.remove(key?)?;
+        }
         Ok(())
     }
 
@@ -599,6 +629,10 @@ fn insert_new(frames: &sled::Tree, id: u64, value: &[u8]) -> Result<bool, StoreE
 
 impl Trees {
     fn open(db: &sled::Db, id: &str) -> Result<Self, StoreError> {
-        Ok(Self { frames: db.open_tree(session_tree_name(id))?, features: db.open_tree(features_tree_name(id))? })
+        Ok(Self {
+            frames: db.open_tree(session_tree_name(id))?,
+            features: db.open_tree(features_tree_name(id))?,
+            loops: db.open_tree(loops_tree_name(id))?,
+        })
     }
 }

@@ -2,7 +2,7 @@
 //! without a restart: the in-memory indexes stay; disk is brought back to what they hold.
 use super::disk::Disk;
 use super::record::key_frame;
-use super::{features_tree_name, session_tree_name, Session, Store, StoreError, Trees};
+use super::{features_tree_name, loops_tree_name, session_tree_name, Session, Store, StoreError, Trees};
 use std::collections::HashSet;
 use std::sync::Arc;
 use std::time::Instant;
@@ -59,6 +59,7 @@ impl Store {
                 disk.sessions.remove(&key)?;
                 disk.db.drop_tree(session_tree_name(&id))?;
                 disk.db.drop_tree(features_tree_name(&id))?;
+                disk.db.drop_tree(loops_tree_name(&id))?;
                 dropped += 1;
             }
         }
@@ -73,15 +74,16 @@ impl Store {
 }
 
 impl Trees {
-    /// Removes frames (and features) the session's index does not hold: they were written but
-    /// never acknowledged. Returns how many.
+    /// Removes frames (and features, and loops kept for them) the session's index does not
+    /// hold: they were written but never acknowledged. Returns how many frames.
     fn keep_only_indexed(&self, s: &Session) -> Result<usize, StoreError> {
         let index = s.index.read();
         let mut dropped = 0;
-        for tree in [&self.frames, &self.features] {
+        for tree in [&self.frames, &self.features, &self.loops] {
             for key in tree.iter().keys() {
                 let key = key?;
-                if !key_frame(&key).is_some_and(|id| index.contains(id)) {
+                // Loop keys begin with their query frame's key.
+                if !key.get(..8).and_then(key_frame).is_some_and(|id| index.contains(id)) {
                     tree.remove(&key)?;
                     dropped += usize::from(std::ptr::eq(tree, &self.frames));
                 }

@@ -38,6 +38,13 @@ def test_tls_key_stream_and_query_find_the_known_places(server):
         assert response.frame_id == 5000
         assert response.matches[0].robot_id == "mapper"
         assert response.matches[0].frame_id in truth[0]
+        # Every candidate answered is kept: the visitor's three, with the same scores.
+        kept = {(l.query_frame, l.match_frame): l for l in c.loops("corridor", robot="visitor")}
+        assert set(kept) == {(5000, m.frame_id) for m in response.matches}
+        judged = c.set_verdict("corridor", 5000, response.matches[0].frame_id, True,
+                               covariance=[0.01 if i % 7 == 0 else 0.0 for i in range(36)])
+        assert judged.verdict.accepted and len(judged.verdict.covariance) == 36
+        assert sum(1 for _ in c.loops("corridor", page=7)) >= 10  # the mapper's stream answered candidates too
         assert c.retries == 0
 
 

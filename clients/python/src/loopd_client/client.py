@@ -186,6 +186,32 @@ class Client:
             request.timestamp = timestamp
         return list(self._unary(self._stub.Query, request).matches)
 
+    def loops(self, session: str, *, robot: str = "", min_score: Optional[float] = None,
+              verified: Optional[bool] = None, time_from: Optional[float] = None,
+              time_to: Optional[float] = None, page: int = 500) -> Iterator[pb.Loop]:
+        """Every kept loop candidate of a session matching the filters, in frame order (pages
+        fetched as needed)."""
+        after = ""
+        while True:
+            request = pb.ListLoopsRequest(session_id=session, robot_id=robot, min_score=min_score,
+                                          verified=verified, time_from=time_from, time_to=time_to,
+                                          after=after, limit=page)
+            response = self._unary(self._stub.ListLoops, request)
+            yield from response.loops
+            if not response.next:
+                return
+            after = response.next
+
+    def set_verdict(self, session: str, query_frame: int, match_frame: int, accepted: bool, *,
+                    relative_pose: Optional[pb.RelativePose] = None,
+                    covariance: Optional[Sequence[float]] = None) -> pb.Loop:
+        """Accepts or rejects a kept loop, optionally with the client's own relative pose and 6x6
+        covariance (row-major)."""
+        request = pb.SetLoopVerdictRequest(session_id=session, query_frame=query_frame, match_frame=match_frame,
+                                           accepted=accepted, relative_pose=relative_pose,
+                                           covariance=list(covariance or []))
+        return self._unary(self._stub.SetLoopVerdict, request)
+
     def stream(self, session: str, robot: str, frames: Iterable[Frame],
                options: Optional[pb.QueryOptions] = None, window: int = 64) -> Iterator[Answer]:
         """Streams frames (StreamFrames) and yields one Answer per frame, in order. After a lost

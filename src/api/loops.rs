@@ -1,0 +1,97 @@
+//! Kept loop candidates (issue #18): what the service records after answering, and how clients
+//! list them and give their verdict. Both APIs reach these through `tenancy.rs`.
+use super::error::ApiError;
+use super::service::{LoopMatch, LoopService};
+use crate::store::loops::{LoopFilter, LoopRecord, Page, Transform, Verdict};
+use crate::store::Session;
+use crate::verify::geometric::RelativePose;
+use std::sync::Arc;
+
+fn now() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64()
+}
+
+pub fn transform(p: &RelativePose) -> Transform {
+    Transform { qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw, tx: p.tx, ty: p.ty, tz: p.tz }
+}
+
+/// The stored frame a query was answered for.
+pub struct QueryFrame<'a> {
+    pub id: u64,
+    pub robot: &'a str,
+    pub time: f64,
+}
+
+/// The records of the candidates answered for a stored frame, in answer order.
+pub fn loop_records(q: QueryFrame<'_>, matches: &[LoopMatch]) -> Vec<LoopRecord> {
+    let found = now();
+    matches
+        .iter()
+        .enumerate()
+        .map(|(rank, m)| {
+            let v = m.verification.as_ref();
+            LoopRecord {
+                query_frame: q.id,
+                match_frame: m.m.frame_id,
+                query_robot: q.robot.to_string(),
+                match_robot: m.m.robot_id.clone(),
+                query_time: q.time,
+                match_time: m.m.timestamp,
+                score: m.m.score,
+                rank: rank as u32,
+                checked: v.is_some(),
+                verified: v.is_some_and(|v| v.verified),
+                inliers: v.map_or(0, |v| v.inliers as u32),
+                relative_pose: v.and_then(|v| v.relative_pose.as_ref()).map(transform),
+                found,
+                verdict: None,
+            }
+        })
+        .collect()
+}
+
+impl LoopService {
+    /// Keeps the candidates answered again for a stored frame (a query on it; a new frame's
+    /// are kept in its own flush, see `add_and_query`). A failure to keep them is logged and
+    /// counted, not answered: the answer itself is right.
+    pub(super) async fn keep_loops(&self, s: &Arc<Session>, q: QueryFrame<'_>, matches: &[LoopMatch]) {
+        let records = loop_records(q, matches);
+        if let Err(e) = self.store.keep_loops(s, records).await {
+            self.loops_not_kept.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            tracing::warn!(session = %s.meta.id, error = %e, "loop candidates answered but not kept");
+        }
+    }
+
+    pub fn loops(&self, session: &str, filter: &LoopFilter) -> Result<Page, ApiError> {
+        Ok(self.store.session(session)?.loops(filter)?)
+    }
+
+    /// A session's frames and kept loops as of now, for an export.
+    pub fn snapshot(&self, session: &str) -> Result<crate::export::Snapshot, ApiError> {
+        let s = self.store.session(session)?;
+        Ok(crate::export::Snapshot { frames: s.headers()?, loops: s.all_loops()? })
+    }
+
+    pub async fn set_verdict(
+        &self,
+        session: &str,
+        query: u64,
+        matched: u64,
+        accepted: bool,
+        relative_pose: Option<Transform>,
+        covariance: Option<Vec<f64>>,
+    ) -> Result<LoopRecord, ApiError> {
+        let s = self.store.session(session)?;
+        if let Some(p) = &relative_pose {
+            let values = [p.qx, p.qy, p.qz, p.qw, p.tx, p.ty, p.tz];
+            let norm = (p.qx * p.qx + p.qy * p.qy + p.qz * p.qz + p.qw * p.qw).sqrt();
+            if values.iter().any(|v| !v.is_finite()) || (norm - 1.0).abs() > 1e-3 {
+                return Err(ApiError::InvalidArgument(
+                    "relative_pose needs finite values and a unit quaternion (qx qy qz qw)".into(),
+                ));
+            }
+        }
+        let verdict = Verdict { accepted, relative_pose, covariance, at: now() };
+        Ok(self.store.set_verdict(&s, query, matched, verdict).await?)
+    }
+}

@@ -1,0 +1,236 @@
+//! Loop candidates kept per session (issue #18): each candidate loopd answered for a stored
+//! frame, with its verification outcome and a client's verdict, so a SLAM back end can fetch the
+//! session's loop graph later. Keyed by (query frame, match frame), big-endian: listed in frame
+//! order; a pair answered again is updated, its verdict kept.
+use super::{Session, Store, StoreError};
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// Most loops one listing returns.
+pub const MAX_LOOPS_PER_PAGE: usize = 1000;
+
+/// A rigid transform: the match camera's pose in the query camera's frame (unit quaternion,
+/// translation).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Transform {
+    pub qx: f64,
+    pub qy: f64,
+    pub qz: f64,
+    pub qw: f64,
+    pub tx: f64,
+    pub ty: f64,
+    pub tz: f64,
+}
+
+/// A client's judgement of a loop, optionally with its own registration.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Verdict {
+    pub accepted: bool,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub relative_pose: Option<Transform>,
+    /// 6x6 row-major covariance of the relative pose (x y z, then rotation), if given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub covariance: Option<Vec<f64>>,
+    /// Unix seconds it was recorded.
+    pub at: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct LoopRecord {
+    pub query_frame: u64,
+    pub match_frame: u64,
+    pub query_robot: String,
+    pub match_robot: String,
+    pub query_time: f64,
+    pub match_time: f64,
+    /// Cosine similarity of the descriptors.
+    pub score: f32,
+    /// Place among the candidates answered (0: first).
+    pub rank: u32,
+    /// Geometric verification ran on this candidate.
+    pub checked: bool,
+    pub verified: bool,
+    pub inliers: u32,
+    /// From verification, with a camera (monocular: |t| = 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub relative_pose: Option<Transform>,
+    /// Unix seconds it was (last) answered.
+    pub found: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verdict: Option<Verdict>,
+}
+
+/// One page of a listing, and where the next starts (None: the last page).
+pub type Page = (Vec<LoopRecord>, Option<(u64, u64)>);
+
+/// Which loops a listing returns; every field set narrows it.
+#[derive(Clone, Debug, Default)]
+pub struct LoopFilter {
+    /// Loops with this robot on either side.
+    pub robot: Option<String>,
+    pub min_score: Option<f32>,
+    pub verified: Option<bool>,
+    /// The query frame's time in [time_from, time_to].
+    pub time_from: Option<f64>,
+    pub time_to: Option<f64>,
+    /// Start after this (query frame, match frame): the `next` of the previous page.
+    pub after: Option<(u64, u64)>,
+    pub limit: usize,
+}
+
+impl LoopFilter {
+    fn keeps(&self, l: &LoopRecord) -> bool {
+        self.robot.as_ref().is_none_or(|r| *r == l.query_robot || *r == l.match_robot)
+            && self.min_score.is_none_or(|s| l.score >= s)
+            && self.verified.is_none_or(|v| v == l.verified)
+            && self.time_from.is_none_or(|t| l.query_time >= t)
+            && self.time_to.is_none_or(|t| l.query_time <= t)
+    }
+}
+
+fn loop_key(query: u64, matched: u64) -> [u8; 16] {
+    let mut k = [0u8; 16];
+    k[..8].copy_from_slice(&query.to_be_bytes());
+    k[8..].copy_from_slice(&matched.to_be_bytes());
+    k
+}
+
+fn key_loop(k: &[u8]) -> Option<(u64, u64)> {
+    let k: [u8; 16] = k.try_into().ok()?;
+    Some((u64::from_be_bytes(k[..8].try_into().ok()?), u64::from_be_bytes(k[8..].try_into().ok()?)))
+}
+
+fn decode(v: &[u8]) -> Result<LoopRecord, StoreError> {
+    serde_json::from_slice(v).map_err(|e| StoreError::Storage(format!("bad loop record: {e}")))
+}
+
+impl Store {
+    /// Keeps the candidates answered for a stored frame; durable when this returns.
+    pub async fn keep_loops(&self, s: &Arc<Session>, loops: Vec<LoopRecord>) -> Result<(), StoreError> {
+        if loops.is_empty() {
+            return Ok(());
+        }
+        self.health.writable()?;
+        {
+            let trees = s.trees()?;
+            for mut l in loops {
+                let key = loop_key(l.query_frame, l.match_frame);
+                if let Some(old) = self.note(trees.loops.get(key))? {
+                    l.verdict = decode(&old).ok().and_then(|o| o.verdict);
+                }
+                let value = serde_json::to_vec(&l).map_err(|e| StoreError::Storage(e.to_string()))?;
+                self.note(trees.loops.insert(key, value))?;
+            }
+        }
+        self.durable().await
+    }
+
+    /// Records a client's verdict on a kept loop; the loop as it now is, once durable.
+    pub async fn set_verdict(
+        &self,
+        s: &Arc<Session>,
+        query: u64,
+        matched: u64,
+        verdict: Verdict,
+    ) -> Result<LoopRecord, StoreError> {
+        if let Some(c) = &verdict.covariance {
+            if c.len() != 36 || c.iter().any(|v| !v.is_finite()) {
+                return Err(StoreError::InvalidArgument(
+                    "covariance must be 36 finite numbers (6x6, row-major)".into(),
+                ));
+            }
+        }
+        self.health.writable()?;
+        let record = {
+            let trees = s.trees()?;
+            let key = loop_key(query, matched);
+            let old = self.note(trees.loops.get(key))?.ok_or_else(|| {
+                StoreError::LoopNotFound(format!("no loop {query} -> {matched} in session '{}'", s.meta.id))
+            })?;
+            let mut record = decode(&old)?;
+            record.verdict = Some(verdict);
+            let value = serde_json::to_vec(&record).map_err(|e| StoreError::Storage(e.to_string()))?;
+            self.note(trees.loops.insert(key, value))?;
+            record
+        };
+        self.durable().await?;
+        Ok(record)
+    }
+}
+
+impl Session {
+    /// Inserts loop records of frames being added (not yet durable: their flush makes them so).
+    pub(super) fn write_loops(&self, loops: &[LoopRecord]) -> Result<(), StoreError> {
+        if loops.is_empty() {
+            return Ok(());
+        }
+        let trees = self.trees()?;
+        for l in loops {
+            let value = serde_json::to_vec(l).map_err(|e| StoreError::Storage(e.to_string()))?;
+            trees.loops.insert(loop_key(l.query_frame, l.match_frame), value)?;
+        }
+        Ok(())
+    }
+
+    /// One page of kept loops in (query, match) order, and where the next page starts.
+    pub fn loops(&self, f: &LoopFilter) -> Result<Page, StoreError> {
+        let trees = self.trees()?;
+        let limit = f.limit.clamp(1, MAX_LOOPS_PER_PAGE);
+        let range = match f.after {
+            Some((q, m)) => trees.loops.range(loop_key(q, m)..),
+            None => trees.loops.iter(),
+        };
+        let mut page: Vec<LoopRecord> = Vec::new();
+        for entry in range {
+            let (k, v) = entry?;
+            let pair = key_loop(&k).ok_or_else(|| StoreError::Storage("bad loop key".into()))?;
+            if Some(pair) == f.after {
+                continue;
+            }
+            let l = decode(&v)?;
+            if !f.keeps(&l) {
+                continue;
+            }
+            if page.len() == limit {
+                let next = (page[limit - 1].query_frame, page[limit - 1].match_frame);
+                return Ok((page, Some(next)));
+            }
+            page.push(l);
+        }
+        Ok((page, None))
+    }
+
+    /// Every searchable frame's header, in frame id order (exports).
+    pub fn headers(&self) -> Result<Vec<(u64, super::record::FrameHeader)>, StoreError> {
+        let trees = self.trees()?;
+        let index = self.index.read();
+        let mut out = Vec::with_capacity(index.len());
+        for entry in trees.frames.iter() {
+            let (k, v) = entry?;
+            let id = super::record::key_frame(&k).ok_or_else(|| StoreError::Storage("bad frame key".into()))?;
+            if index.contains(id) {
+                out.push((id, super::record::decode_frame(&v).map_err(StoreError::Storage)?.0));
+            }
+        }
+        Ok(out)
+    }
+
+    /// Every kept loop (exports).
+    pub fn all_loops(&self) -> Result<Vec<LoopRecord>, StoreError> {
+        let trees = self.trees()?;
+        trees.loops.iter().values().map(|v| decode(&v?)).collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_sort_by_query_then_match() {
+        let (a, b, c) = (loop_key(1, 9), loop_key(2, 0), loop_key(2, 1));
+        assert!(a < b && b < c);
+        assert_eq!(key_loop(&c), Some((2, 1)));
+        assert_eq!(key_loop(&[0u8; 3]), None);
+    }
+}
