@@ -180,9 +180,15 @@ def run_checks(fleet: Fleet) -> None:
         time.sleep(4)
         network = f"{PROJECT}_fleet"
         sh("docker", "network", "disconnect", network, f"{PROJECT}-cut")
-        time.sleep(2)  # frames already received are still being embedded and stored
-        during = fleet.frames("cut")
-        time.sleep(8)
+        # Frames received before the cut may still be queued for embedding: wait until the count
+        # has stood still for 3 s (at most 30 s), then nothing more may arrive while cut.
+        during, still, deadline = fleet.frames("cut"), time.monotonic(), time.monotonic() + 30
+        while time.monotonic() - still < 3 and time.monotonic() < deadline:
+            time.sleep(0.5)
+            now = fleet.frames("cut")
+            if now != during:
+                during, still = now, time.monotonic()
+        time.sleep(5)
         assert fleet.frames("cut") == during, "frames arrived from a disconnected robot"
         sh("docker", "network", "connect", network, f"{PROJECT}-cut")
         s = fleet.finish("cut")
