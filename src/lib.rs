@@ -2,9 +2,11 @@
 //!
 //! Layers, dependencies pointing one way: `api` -> `engine` -> `model`, `store`; `verify` (local
 //! features and geometry) is used by `api` and `eval`; `train` (heads, whitening) uses `eval`;
-//! `export` (a session's loop graph as files) is used by `api`.
+//! `export` (a session's loop graph as files) is used by `api`; `bags` (ROS bags to frames) by
+//! `api` and `cli`.
 pub mod api;
 pub mod auth;
+pub mod bags;
 pub mod cli;
 pub mod engine;
 pub mod eval;

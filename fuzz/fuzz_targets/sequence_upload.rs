@@ -14,6 +14,6 @@ fuzz_target!(|data: &[u8]| {
         SequenceRequest::from_form(HashMap::new(), vec![("archive".into(), None, body)], None)
     };
     if let Ok(seq) = r {
-        assert!(!seq.images.is_empty());
+        assert!(!seq.frames.is_empty());
     }
 });

@@ -388,7 +388,8 @@ struct JobCreated {
 }
 
 /// An offline sequence: multipart with many `image` files (in the order sent, or natural name
-/// order with `order=name`), or one tar archive (`archive` part or an application/x-tar body).
+/// order with `order=name`), one tar archive (`archive` part or a tar body), or a bag (`bag`
+/// parts, the files of a split bag in order, or an MCAP / ROS 1 bag body).
 async fn start_sequence(
     State(s): State<Arc<AppState>>,
     Extension(caller): Extension<Caller>,
@@ -397,9 +398,12 @@ async fn start_sequence(
 ) -> Result<(StatusCode, Json<JobCreated>), ApiError> {
     let scoped = s.service.scoped(caller);
     scoped.session(&id)?;
-    let form = read_form(req, &["image", "archive"]).await?;
+    let form = read_form(req, &["image", "archive", "bag"]).await?;
     let files = form.files.into_iter().map(|f| (f.part, f.file_name, f.data)).collect();
-    let seq = SequenceRequest::from_form(form.fields, files, form.body)?;
+    // Unpacking a bag (decompression, raw pixels to PNG) is CPU work: off the async workers.
+    let seq = tokio::task::spawn_blocking(move || SequenceRequest::from_form(form.fields, files, form.body))
+        .await
+        .map_err(|e| ApiError::Internal(format!("reading the upload failed: {e}")))??;
     let job_id = scoped.start_sequence(&id, seq).await?;
     Ok((StatusCode::ACCEPTED, Json(JobCreated { status_url: format!("/v1/jobs/{job_id}"), job_id })))
 }

@@ -2,6 +2,7 @@
 //! searched for loops, as a background job whose progress can be polled.
 use super::error::ApiError;
 use super::service::{Content, FrameInput, LoopService, QueryOverrides};
+use crate::bags::{self, Selection};
 use crate::files::{is_image, natural_key};
 use crate::store::query::Scope;
 use crate::store::Store;
@@ -21,8 +22,27 @@ const SAVE_EVERY: std::time::Duration = std::time::Duration::from_secs(2);
 /// Most frames one job may hold (bounded memory); the body size limit applies as well.
 pub const MAX_JOB_FRAMES: usize = 100_000;
 
+/// Most bytes of a decompressed ROS 1 bag chunk (rosbag records 768 KiB chunks).
+pub const MAX_BAG_CHUNK_BYTES: usize = 256 << 20;
+
+/// One frame of a sequence: an encoded image and, from a bag, its robot and stamp.
+pub struct SeqFrame {
+    pub name: String,
+    pub image: Bytes,
+    /// None: the request's robot id.
+    pub robot_id: Option<String>,
+    /// None: the frame's place in the sequence.
+    pub timestamp: Option<f64>,
+}
+
+impl SeqFrame {
+    fn file(name: String, image: Bytes) -> Self {
+        Self { name, image, robot_id: None, timestamp: None }
+    }
+}
+
 pub struct SequenceRequest {
-    pub images: Vec<(String, Bytes)>,
+    pub frames: Vec<SeqFrame>,
     pub robot_id: String,
     pub min_score: f32,
     pub exclude_last_frames: usize,
@@ -62,7 +82,7 @@ pub struct JobStatus {
     pub errors: Vec<String>,
 }
 
-fn untar(bytes: &[u8], out: &mut Vec<(String, Bytes)>) -> Result<(), ApiError> {
+fn untar(bytes: &[u8], out: &mut Vec<SeqFrame>) -> Result<(), ApiError> {
     let bad = |e: std::io::Error| ApiError::InvalidArgument(format!("not a readable tar archive: {e}"));
     let mut archive = tar::Archive::new(std::io::Cursor::new(bytes));
     let mut found = Vec::new();
@@ -80,53 +100,110 @@ fn untar(bytes: &[u8], out: &mut Vec<(String, Bytes)>) -> Result<(), ApiError> {
     }
     // An archive's own order is arbitrary: frames go in natural name order.
     found.sort_by_cached_key(|(n, _)| natural_key(n));
-    out.extend(found);
+    out.extend(found.into_iter().map(|(name, data)| SeqFrame::file(name, data)));
     Ok(())
+}
+
+/// What a bag job reads, from the request's fields.
+fn bag_selection(fields: &mut HashMap<String, String>) -> Result<Selection, ApiError> {
+    let mut sel = Selection::default();
+    if let Some(v) = fields.remove("topic") {
+        sel.topics = v.split(',').map(str::trim).filter(|t| !t.is_empty()).map(String::from).collect();
+    }
+    if let Some(v) = fields.remove("every") {
+        sel.every = v.parse().ok().filter(|n| *n >= 1).ok_or_else(|| bad_field("every", &v))?;
+    }
+    if let Some(v) = fields.remove("min_dt") {
+        sel.min_dt =
+            v.parse().ok().filter(|s: &f64| s.is_finite() && *s >= 0.0).ok_or_else(|| bad_field("min_dt", &v))?;
+    }
+    Ok(sel)
+}
+
+fn bad_field(k: &str, v: &str) -> ApiError {
+    ApiError::InvalidArgument(format!("field {k}: bad value '{v}'"))
+}
+
+/// A bag's frames (its parts in order: the files of a split rosbag2 bag).
+fn from_bag(parts: &[Bytes], sel: &Selection) -> Result<Vec<SeqFrame>, ApiError> {
+    let limits = bags::Limits { max_frames: MAX_JOB_FRAMES, max_chunk_bytes: MAX_BAG_CHUNK_BYTES };
+    let parts: Vec<&[u8]> = parts.iter().map(|p| p.as_ref()).collect();
+    let frames = bags::frames(&parts, sel, &limits).map_err(|e| match e {
+        bags::BagError::Io(_) => ApiError::Internal(e.to_string()),
+        e => ApiError::InvalidArgument(e.to_string()),
+    })?;
+    Ok(frames
+        .into_iter()
+        .map(|f| SeqFrame {
+            name: format!("{}#{}", f.topic, f.index),
+            image: Bytes::from(f.image),
+            robot_id: f.robot_id,
+            timestamp: Some(f.stamp),
+        })
+        .collect())
 }
 
 impl SequenceRequest {
     /// From a form's text fields, its files (part name, client file name, bytes) and, for a
-    /// request that was not a form, its raw body (a tar archive).
+    /// request that was not a form, its raw body (a tar archive or a bag, told by its first bytes).
     pub fn from_form(
         mut fields: HashMap<String, String>,
         files: Vec<(String, Option<String>, Bytes)>,
         body: Option<Bytes>,
     ) -> Result<Self, ApiError> {
-        let mut images = Vec::new();
+        let mut frames = Vec::new();
+        let mut bag = Vec::new();
         for (part, file_name, data) in files {
             match part.as_str() {
-                "archive" => untar(&data, &mut images)?,
-                _ => images.push((file_name.unwrap_or_else(|| images.len().to_string()), data)),
+                "archive" => untar(&data, &mut frames)?,
+                "bag" => bag.push(data),
+                _ => frames.push(SeqFrame::file(file_name.unwrap_or_else(|| frames.len().to_string()), data)),
             }
         }
-        if let Some(body) = body {
-            untar(&body, &mut images)?;
+        match body {
+            Some(body) if bags::is_bag(&body) => bag.push(body),
+            Some(body) => untar(&body, &mut frames)?,
+            None => {}
         }
-        if images.is_empty() {
+        let selection = bag_selection(&mut fields)?;
+        if !bag.is_empty() {
+            if !frames.is_empty() {
+                return Err(ApiError::InvalidArgument("send images or a bag, not both".into()));
+            }
+            frames = from_bag(&bag, &selection)?;
+        } else if !selection.topics.is_empty() || selection.every != 1 || selection.min_dt != 0.0 {
+            return Err(ApiError::InvalidArgument("topic, every and min_dt apply to bags only".into()));
+        }
+        if frames.is_empty() {
             return Err(ApiError::InvalidArgument(
-                "a sequence needs images: multipart 'image' files or a tar archive".into(),
+                "a sequence needs images: multipart 'image' files, a tar archive or a bag".into(),
             ));
         }
-        if images.len() > MAX_JOB_FRAMES {
+        if frames.len() > MAX_JOB_FRAMES {
             return Err(ApiError::InvalidArgument(format!(
                 "{} frames; at most {MAX_JOB_FRAMES} per job",
-                images.len()
+                frames.len()
             )));
         }
-        let mut req = SequenceRequest { images, robot_id: "sequence".into(), min_score: 0.0, exclude_last_frames: 3 };
+        let mut req = SequenceRequest { frames, robot_id: "sequence".into(), min_score: 0.0, exclude_last_frames: 3 };
         // Order is applied last, whatever the field order.
         let order = fields.remove("order");
         for (k, v) in fields {
-            let bad = || ApiError::InvalidArgument(format!("field {k}: bad value '{v}'"));
             match k.as_str() {
-                "robot_id" if !v.is_empty() => req.robot_id = v,
-                "min_score" => req.min_score = v.parse().ok().filter(|s: &f32| s.is_finite()).ok_or_else(bad)?,
-                "exclude_last_frames" => req.exclude_last_frames = v.parse().map_err(|_| bad())?,
-                _ => return Err(bad()),
+                "robot_id" if !v.is_empty() => {
+                    // A robot named in the request is every frame's, whatever the topics say.
+                    req.frames.iter_mut().for_each(|f| f.robot_id = None);
+                    req.robot_id = v;
+                }
+                "min_score" => {
+                    req.min_score = v.parse().ok().filter(|s: &f32| s.is_finite()).ok_or_else(|| bad_field(&k, &v))?
+                }
+                "exclude_last_frames" => req.exclude_last_frames = v.parse().map_err(|_| bad_field(&k, &v))?,
+                _ => return Err(bad_field(&k, &v)),
             }
         }
         match order.as_deref() {
-            Some("name") => req.images.sort_by_cached_key(|(n, _)| natural_key(n)),
+            Some("name") => req.frames.sort_by_cached_key(|f| natural_key(&f.name)),
             None | Some("sent") => {}
             Some(other) => return Err(ApiError::InvalidArgument(format!("field order: bad value '{other}'"))),
         }
@@ -204,7 +281,7 @@ impl Jobs {
             job_id: id.clone(),
             session_id: session.clone(),
             state: JobState::Running,
-            total: seq.images.len(),
+            total: seq.frames.len(),
             done: 0,
             loops: Vec::new(),
             errors: Vec::new(),
@@ -232,10 +309,13 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
     let engine = service.engine.clone();
     let width = engine.config().max_batch.max(1);
     // Embedding runs ahead in batches (order kept); adding and searching go one frame at a time.
-    let mut embedded = futures::stream::iter(seq.images.into_iter().enumerate())
-        .map(|(i, (name, bytes))| {
+    let mut embedded = futures::stream::iter(seq.frames.into_iter().enumerate())
+        .map(|(i, f)| {
             let engine = engine.clone();
-            async move { (i, name, engine.embed_image(bytes, crate::model::network::Variant::FULL).await) }
+            async move {
+                let result = engine.embed_image(f.image, crate::model::network::Variant::FULL).await;
+                (i, f.name, f.robot_id, f.timestamp, result)
+            }
         })
         .buffered(width);
     let opts = QueryOverrides {
@@ -250,7 +330,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
     let mut names: HashMap<u64, (usize, String)> = HashMap::new();
     let mut failed = None;
     let mut saved = std::time::Instant::now();
-    while let Some((i, name, result)) = embedded.next().await {
+    while let Some((i, name, robot_id, timestamp, result)) = embedded.next().await {
         if saved.elapsed() >= SAVE_EVERY {
             // Durable with the next frame's commit.
             save(&service.store, &status.lock());
@@ -266,8 +346,8 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
             }
         };
         let frame = FrameInput {
-            robot_id: seq.robot_id.clone(),
-            timestamp: Some(i as f64),
+            robot_id: robot_id.unwrap_or_else(|| seq.robot_id.clone()),
+            timestamp: timestamp.or(Some(i as f64)),
             frame_id: None,
             pose: None,
             metadata: Some(serde_json::json!({ "name": name, "index": i })),

@@ -164,7 +164,7 @@ impl Scoped<'_> {
     pub async fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
         let sid = self.sid(session)?;
         // A job runs after this returns: the slot checks the share at submission only.
-        drop(self.admit(seq.images.len())?);
+        drop(self.admit(seq.frames.len())?);
         self.service.start_sequence(&sid, seq).await
     }
 

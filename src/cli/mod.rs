@@ -4,6 +4,8 @@ mod embed;
 mod eval;
 mod export;
 mod images;
+mod ingest;
+mod remote;
 mod serve;
 mod tenant;
 mod train;
@@ -48,6 +50,9 @@ pub enum Command {
     /// A session's loop graph (frames.csv, loops.csv, graph.g2o, TUM trajectories) as a tar,
     /// through a running server.
     Export(export::ExportArgs),
+    /// A ROS bag (MCAP, rosbag2 folder, ROS 1) as a sequence job on a running server; without
+    /// --session, the bag's topics.
+    Ingest(ingest::IngestArgs),
 }
 
 /// The heads shipped in the repository (trained on the real data here, see docs/training.md).
@@ -139,5 +144,6 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Train(a) => train::run(a),
         Command::Tenant(a) => tenant::run(a),
         Command::Export(a) => export::run(a),
+        Command::Ingest(a) => ingest::run(a),
     }
 }

@@ -1,0 +1,252 @@
+//! ROS bags to frames: rosbag2 MCAP (one file, or the files of a split bag in order) and ROS 1
+//! bags; `sensor_msgs/Image` and `CompressedImage` topics, thinned, in recording order, each
+//! frame as encoded image bytes for the engine's one decoder.
+mod mcap_bag;
+pub mod msgs;
+pub mod pixels;
+mod ros1;
+
+use msgs::{ImageKind, Wire};
+use std::collections::{BTreeMap, HashMap};
+
+/// Called for every message: topic, type name, wire format (None: not decodable here), bag
+/// time (ns), bytes.
+pub type Visit<'f> = dyn FnMut(&str, &str, Option<Wire>, u64, &[u8]) -> Result<(), BagError> + 'f;
+
+#[derive(Debug, Clone, thiserror::Error, PartialEq)]
+pub enum BagError {
+    #[error("not a bag: an MCAP file (rosbag2) or a ROS 1 bag (format 2.0) expected")]
+    NotABag,
+    #[error("{0}")]
+    Corrupt(String),
+    #[error("cannot keep a temporary copy of the bag: {0}")]
+    Io(String),
+    #[error("topic {topic}, message {index}: {why}")]
+    Message { topic: String, index: usize, why: String },
+    /// The topics asked for are not image topics of this bag, or several could be meant.
+    #[error("{0}")]
+    Topics(String),
+    #[error("more than {max} frames selected: keep every Nth frame (every) or set a minimum time step (min_dt)")]
+    TooManyFrames { max: usize },
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct Limits {
+    /// Most frames one bag may give (after thinning).
+    pub max_frames: usize,
+    /// Largest decompressed ROS 1 chunk (rosbag's default chunk is 768 KiB).
+    pub max_chunk_bytes: usize,
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct TopicInfo {
+    pub topic: String,
+    pub msg_type: String,
+    pub messages: usize,
+    /// Whether loopd reads it (an image topic).
+    pub image: bool,
+}
+
+/// Which frames to take.
+#[derive(Clone, Debug)]
+pub struct Selection {
+    /// Image topics; empty: the bag's only image topic.
+    pub topics: Vec<String>,
+    /// Every Nth message of each topic (1: all).
+    pub every: usize,
+    /// Smallest step between kept frames of a topic, in seconds of header stamp.
+    pub min_dt: f64,
+}
+
+impl Default for Selection {
+    fn default() -> Self {
+        Self { topics: Vec::new(), every: 1, min_dt: 0.0 }
+    }
+}
+
+#[derive(Debug)]
+pub struct BagFrame {
+    pub topic: String,
+    /// The message's place among its topic's messages (before thinning).
+    pub index: usize,
+    /// Header stamp in seconds (the bag time where the header holds none).
+    pub stamp: f64,
+    /// From the topic's namespace: `/robot1/cam/image_raw` is robot1's.
+    pub robot_id: Option<String>,
+    /// JPEG or PNG as sent for a compressed image; a lossless PNG for a raw one.
+    pub image: Vec<u8>,
+}
+
+/// The robot a topic belongs to: the first name of a topic three or more names deep.
+pub fn robot_of(topic: &str) -> Option<String> {
+    let names: Vec<&str> = topic.split('/').filter(|n| !n.is_empty()).collect();
+    (names.len() >= 3).then(|| names[0].to_string())
+}
+
+/// Whether `bytes` start like a bag (not a tar archive or an image).
+pub fn is_bag(bytes: &[u8]) -> bool {
+    bytes.starts_with(mcap_bag::MAGIC) || bytes.starts_with(ros1::MAGIC)
+}
+
+/// Every message of every part, parts in order.
+fn each(parts: &[&[u8]], limits: &Limits, visit: &mut Visit) -> Result<(), BagError> {
+    for part in parts {
+        if part.starts_with(mcap_bag::MAGIC) {
+            mcap_bag::visit(part, visit)?;
+        } else if part.starts_with(ros1::MAGIC) {
+            ros1::visit(part, limits.max_chunk_bytes, visit)?;
+        } else {
+            return Err(BagError::NotABag);
+        }
+    }
+    Ok(())
+}
+
+/// Every topic with its type and message count, by name.
+pub fn topics(parts: &[&[u8]], limits: &Limits) -> Result<Vec<TopicInfo>, BagError> {
+    let mut found: BTreeMap<String, TopicInfo> = BTreeMap::new();
+    each(parts, limits, &mut |topic, tp, _, _, _| {
+        let t = found.entry(topic.to_string()).or_insert_with(|| TopicInfo {
+            topic: topic.into(),
+            msg_type: tp.into(),
+            messages: 0,
+            image: ImageKind::of(tp).is_some(),
+        });
+        t.messages += 1;
+        Ok(())
+    })?;
+    Ok(found.into_values().collect())
+}
+
+fn listing(topics: &[TopicInfo]) -> String {
+    let all: Vec<String> = topics.iter().map(|t| format!("{} ({}, {})", t.topic, t.msg_type, t.messages)).collect();
+    if all.is_empty() {
+        "none".into()
+    } else {
+        all.join(", ")
+    }
+}
+
+/// The topics to read: those asked for, which must be image topics of the bag, or its only one.
+fn chosen(sel: &Selection, topics: &[TopicInfo]) -> Result<Vec<String>, BagError> {
+    let images: Vec<&TopicInfo> = topics.iter().filter(|t| t.image).collect();
+    if sel.topics.is_empty() {
+        return match images.as_slice() {
+            [one] => Ok(vec![one.topic.clone()]),
+            [] => Err(BagError::Topics(format!(
+                "the bag has no sensor_msgs/Image or CompressedImage topic; its topics: {}",
+                listing(topics)
+            ))),
+            _ => Err(BagError::Topics(format!(
+                "the bag has several image topics; name one or more (topic): {}",
+                listing(&images.into_iter().cloned().collect::<Vec<_>>())
+            ))),
+        };
+    }
+    for want in &sel.topics {
+        match topics.iter().find(|t| &t.topic == want) {
+            Some(t) if t.image => {}
+            Some(t) => {
+                return Err(BagError::Topics(format!("topic {want} is {}, not an image topic", t.msg_type)));
+            }
+            None => {
+                return Err(BagError::Topics(format!("the bag has no topic {want}; its topics: {}", listing(topics))));
+            }
+        }
+    }
+    Ok(sel.topics.clone())
+}
+
+/// Per topic: messages seen, stamp of the last kept frame.
+#[derive(Default)]
+struct Thinning {
+    seen: usize,
+    last: Option<f64>,
+}
+
+enum Pixels<'a> {
+    Raw(msgs::RawImage<'a>),
+    /// JPEG or PNG bytes as recorded.
+    Encoded(&'a [u8]),
+}
+
+/// The selected frames in recording order (bag time; parts in order).
+pub fn frames(parts: &[&[u8]], sel: &Selection, limits: &Limits) -> Result<Vec<BagFrame>, BagError> {
+    let all = topics(parts, limits)?;
+    let wanted = chosen(sel, &all)?;
+    let every = sel.every.max(1);
+    let mut state: HashMap<String, Thinning> = wanted.iter().map(|t| (t.clone(), Thinning::default())).collect();
+    let mut out: Vec<(u64, BagFrame)> = Vec::new();
+    each(parts, limits, &mut |topic, tp, wire, time, bytes| {
+        let Some(st) = state.get_mut(topic) else { return Ok(()) };
+        let index = st.seen;
+        st.seen += 1;
+        if index % every != 0 {
+            return Ok(());
+        }
+        let bad = |why: String| BagError::Message { topic: topic.into(), index, why };
+        let wire = wire.ok_or_else(|| bad("not CDR: rosbag2 records CDR".into()))?;
+        let kind = ImageKind::of(tp).ok_or_else(|| bad(format!("{tp} is not an image type")))?;
+        let (stamp, pixels) = match kind {
+            ImageKind::Raw => {
+                let m = msgs::raw_image(wire, bytes).map_err(bad)?;
+                (m.stamp, Pixels::Raw(m))
+            }
+            ImageKind::Compressed => {
+                let m = msgs::compressed_image(wire, bytes).map_err(bad)?;
+                (m.stamp, Pixels::Encoded(m.data))
+            }
+        };
+        let stamp = if stamp > 0.0 { stamp } else { time as f64 * 1e-9 };
+        if st.last.is_some_and(|last| stamp - last < sel.min_dt) {
+            return Ok(());
+        }
+        st.last = Some(stamp);
+        if out.len() >= limits.max_frames {
+            return Err(BagError::TooManyFrames { max: limits.max_frames });
+        }
+        let image = match pixels {
+            Pixels::Raw(raw) => pixels::to_png(&raw).map_err(bad)?,
+            Pixels::Encoded(data) => data.to_vec(),
+        };
+        out.push((time, BagFrame { topic: topic.into(), index, stamp, robot_id: robot_of(topic), image }));
+        Ok(())
+    })?;
+    // Topics interleave by recording time; a stable sort keeps each topic's own order.
+    out.sort_by_key(|(time, _)| *time);
+    Ok(out.into_iter().map(|(_, f)| f).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn robots_from_namespaces() {
+        assert_eq!(robot_of("/robot1/cam/image_raw").as_deref(), Some("robot1"));
+        assert_eq!(robot_of("/cam/image_raw"), None);
+        assert_eq!(robot_of("image"), None);
+    }
+
+    #[test]
+    fn not_bags() {
+        let limits = Limits { max_frames: 10, max_chunk_bytes: 1 << 20 };
+        assert_eq!(topics(&[b"ustar"], &limits), Err(BagError::NotABag));
+        let cut = [ros1::MAGIC, &[5, 0, 0, 0][..]].concat();
+        assert!(matches!(topics(&[&cut], &limits), Err(BagError::Corrupt(m)) if m.contains("truncated")));
+        let cut = [mcap_bag::MAGIC, &[1, 2][..]].concat();
+        assert!(matches!(topics(&[&cut], &limits), Err(BagError::Corrupt(m)) if m.starts_with("MCAP")));
+    }
+
+    /// The `sequence_upload` fuzz target's find: a record claiming 2^64 - 1 bytes made the `mcap`
+    /// crate's MessageStream overflow an index and panic.
+    #[test]
+    fn an_mcap_record_longer_than_the_file_is_an_error() {
+        let limits = Limits { max_frames: 10, max_chunk_bytes: 1 << 20 };
+        let bag = [mcap_bag::MAGIC, &[0xff; 11][..], b"H8888888888"].concat();
+        assert!(matches!(topics(&[&bag], &limits), Err(BagError::Corrupt(m)) if m.starts_with("MCAP")));
+        // The second find: an attachment record too short for its own header.
+        let bag = include_bytes!("../../fuzz/corpus/bag/mcap-short-attachment");
+        assert!(topics(&[bag], &limits).is_err());
+    }
+}

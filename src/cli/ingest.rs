@@ -1,0 +1,173 @@
+//! `loopd ingest BAG`: a ROS bag (MCAP file, rosbag2 folder, ROS 1 .bag) as an offline sequence
+//! job on a running server, which reads the bag (the same code as an HTTP bag upload); without
+//! --session, the bag's topics.
+use super::remote::{Remote, RemoteArgs};
+use crate::api::jobs::{JobState, JobStatus, MAX_BAG_CHUNK_BYTES, MAX_JOB_FRAMES};
+use crate::bags;
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+#[derive(Args)]
+pub struct IngestArgs {
+    /// An MCAP file, a rosbag2 folder (its metadata.yaml lists the files of a split bag) or a
+    /// ROS 1 .bag.
+    bag: PathBuf,
+    /// The session that gets the frames (created when missing); without it, the bag's topics
+    /// are listed.
+    #[arg(long)]
+    session: Option<String>,
+    /// Image topics to read (repeat for several); default: the bag's only image topic.
+    #[arg(long)]
+    topic: Vec<String>,
+    /// Keep every Nth message of each topic.
+    #[arg(long, default_value_t = 1)]
+    every: usize,
+    /// Smallest step between kept frames of a topic (seconds of header stamp).
+    #[arg(long, default_value_t = 0.0)]
+    min_dt: f64,
+    /// Every frame's robot (default: from the topic's namespace, /robot1/cam/image_raw ->
+    /// robot1, else "sequence").
+    #[arg(long)]
+    robot_id: Option<String>,
+    /// Loops scoring below this are not reported.
+    #[arg(long)]
+    min_score: Option<f32>,
+    /// Frames just before a query that are never its loop.
+    #[arg(long)]
+    exclude_last_frames: Option<usize>,
+    /// Print the finished job (frames, loops, errors) as JSON.
+    #[arg(long)]
+    json: bool,
+    #[command(flatten)]
+    remote: RemoteArgs,
+}
+
+#[derive(Deserialize)]
+struct Metadata {
+    rosbag2_bagfile_information: BagInfo,
+}
+
+#[derive(Deserialize)]
+struct BagInfo {
+    storage_identifier: String,
+    relative_file_paths: Vec<String>,
+}
+
+/// The bag's files in order: one file, or those a rosbag2 folder's metadata.yaml lists.
+fn bag_files(path: &Path) -> Result<Vec<PathBuf>> {
+    if !path.is_dir() {
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let meta = path.join("metadata.yaml");
+    let text = std::fs::read_to_string(&meta).with_context(|| format!("reading {}", meta.display()))?;
+    let info = serde_yaml::from_str::<Metadata>(&text)
+        .with_context(|| format!("{} is not rosbag2 metadata", meta.display()))?
+        .rosbag2_bagfile_information;
+    if info.storage_identifier != "mcap" {
+        bail!("the bag is stored as {}; loopd reads MCAP (`ros2 bag convert` writes it)", info.storage_identifier);
+    }
+    Ok(info.relative_file_paths.iter().map(|f| path.join(f)).collect())
+}
+
+fn list_topics(files: &[PathBuf]) -> Result<()> {
+    let data: Vec<Vec<u8>> = files
+        .iter()
+        .map(|f| std::fs::read(f).with_context(|| format!("reading {}", f.display())))
+        .collect::<Result<_>>()?;
+    let parts: Vec<&[u8]> = data.iter().map(Vec::as_slice).collect();
+    let limits = bags::Limits { max_frames: MAX_JOB_FRAMES, max_chunk_bytes: MAX_BAG_CHUNK_BYTES };
+    let topics = bags::topics(&parts, &limits)?;
+    println!("{:<40} {:<36} {:>9}  read", "topic", "type", "messages");
+    for t in &topics {
+        println!("{:<40} {:<36} {:>9}  {}", t.topic, t.msg_type, t.messages, if t.image { "image" } else { "-" });
+    }
+    if !topics.iter().any(|t| t.image) {
+        bail!("no image topic (sensor_msgs/Image or CompressedImage) in the bag");
+    }
+    Ok(())
+}
+
+fn ensure_session(remote: &Remote, id: &str) -> Result<()> {
+    let url = format!("{}/v1/sessions", remote.base);
+    match remote.send(remote.client.post(url).json(&serde_json::json!({ "id": id, "name": id }))) {
+        Ok(_) => Ok(()),
+        Err(e) if e.to_string().starts_with("409") => Ok(()),
+        Err(e) => Err(e.context(format!("creating session {id}"))),
+    }
+}
+
+fn upload(remote: &Remote, a: &IngestArgs, session: &str, files: &[PathBuf]) -> Result<String> {
+    let mut form = reqwest::blocking::multipart::Form::new()
+        .text("every", a.every.to_string())
+        .text("min_dt", a.min_dt.to_string());
+    if !a.topic.is_empty() {
+        form = form.text("topic", a.topic.join(","));
+    }
+    for (k, v) in [("robot_id", a.robot_id.clone()), ("min_score", a.min_score.map(|s| s.to_string()))] {
+        if let Some(v) = v {
+            form = form.text(k, v);
+        }
+    }
+    if let Some(n) = a.exclude_last_frames {
+        form = form.text("exclude_last_frames", n.to_string());
+    }
+    for f in files {
+        form = form.file("bag", f).with_context(|| format!("reading {}", f.display()))?;
+    }
+    let url = format!("{}/v1/sessions/{session}/sequences", remote.base);
+    let created: serde_json::Value = remote.send(remote.client.post(url).multipart(form))?.json()?;
+    created["job_id"].as_str().map(String::from).context("the server's answer has no job id")
+}
+
+fn wait(remote: &Remote, job: &str) -> Result<JobStatus> {
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{msg} {bar:40} {pos}/{len} frames, {elapsed}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    bar.set_message(job.to_string());
+    loop {
+        let s: JobStatus = remote.send(remote.client.get(format!("{}/v1/jobs/{job}", remote.base)))?.json()?;
+        bar.set_length(s.total as u64);
+        bar.set_position(s.done as u64);
+        if s.state != JobState::Running {
+            bar.finish_and_clear();
+            return Ok(s);
+        }
+        std::thread::sleep(std::time::Duration::from_millis(300));
+    }
+}
+
+pub fn run(a: IngestArgs) -> Result<ExitCode> {
+    let files = bag_files(&a.bag)?;
+    let Some(session) = a.session.clone() else {
+        list_topics(&files)?;
+        return Ok(ExitCode::SUCCESS);
+    };
+    let remote = a.remote.connect()?;
+    ensure_session(&remote, &session)?;
+    let job = upload(&remote, &a, &session, &files)?;
+    let s = wait(&remote, &job)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+    } else {
+        for l in &s.loops {
+            println!("{:<32} -> {:<32} {:.3}", l.query_name, l.match_name, l.score);
+        }
+        eprintln!(
+            "{job}: {:?}, {} of {} frames, {} loops, {} errors",
+            s.state,
+            s.done,
+            s.total,
+            s.loops.len(),
+            s.errors.len()
+        );
+        for e in &s.errors {
+            eprintln!("  {e}");
+        }
+    }
+    Ok(if s.state == JobState::Done { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+}
