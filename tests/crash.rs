@@ -1,6 +1,6 @@
 //! Crash test (issue #14): the real `loopd serve` process under eight concurrent clients (gRPC
 //! AddFrame, AddAndQuery and StreamFrames, HTTP frames, session create/delete, offline sequence
-//! jobs), killed with SIGKILL at random moments and restarted on the same data directory, 10
+//! jobs), killed with SIGKILL at random moments and restarted on the same data directory, 8
 //! times (LOOPD_CRASH_CYCLES: more). Every acknowledged frame must be there after each restart and, at the end, searchable
 //! with its descriptor bit-identical; acknowledged deletes stay deleted; acknowledged jobs still
 //! answer. Restart times are printed.
@@ -16,9 +16,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-/// Kill -9 cycles: 10 in CI (about 85 s), more with LOOPD_CRASH_CYCLES.
+/// Kill -9 cycles: 8 in CI (about 70 s), more with LOOPD_CRASH_CYCLES.
 fn cycles() -> usize {
-    std::env::var("LOOPD_CRASH_CYCLES").ok().and_then(|v| v.parse().ok()).unwrap_or(10)
+    std::env::var("LOOPD_CRASH_CYCLES").ok().and_then(|v| v.parse().ok()).unwrap_or(8)
 }
 const SESSION: &str = "crash";
 

@@ -125,14 +125,14 @@ def r_at_100p(results, truth):
     return best
 
 
-def test_corridor_bag_equals_folder_job_and_eval(server, key, tmp_path):
+def test_corridor_bag_session_gives_loopd_evals_r_at_100p(server, key, tmp_path):
     frames = [(p, T0 + 0.1 * i) for i, p in enumerate(CORRIDOR_REF + CORRIDOR_QUERY)]
     topic = "/mapper/cam/image_raw/compressed"
     bag = bagmaker.write_mcap(tmp_path / "corridor", frames, topic, "compressed")
-    want = folder_job(server, key, "corridor-folder", [p for p, _ in frames])
+    # The folder job on the same pictures is the desk test's reference; here `loopd eval` is.
     session(server, key, "corridor-bag")
     got = ingest(server, bag, "--session", "corridor-bag")
-    same_loops(got, want)
+    assert (got["state"], got["total"], got["done"], got["errors"]) == ("done", 222, 222, []), got
     # Frame order, stamps and robot come from the bag.
     for i in (0, 110, 111, 221):
         status, f = call(server, key, "GET", f"/v1/sessions/corridor-bag/frames/{i}")
@@ -159,7 +159,7 @@ def test_corridor_bag_equals_folder_job_and_eval(server, key, tmp_path):
     report = json.loads(out.stdout)
     assert r_at_100p(results, truth) == pytest.approx(report["recall_at_100_precision"], abs=1e-9), report
     print(f"corridor R@100P: bag session {r_at_100p(results, truth):.4f}, loopd eval "
-          f"{report['recall_at_100_precision']:.4f}; {len(got['loops'])} loops, equal to the folder job's")
+          f"{report['recall_at_100_precision']:.4f}")
 
 
 def test_raw_encodings_and_both_ros1_writers_give_the_folder_jobs_loops(server, key, tmp_path):
