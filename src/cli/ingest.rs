@@ -1,7 +1,7 @@
 //! `loopd ingest BAG`: a ROS bag (MCAP file, rosbag2 folder, ROS 1 .bag) as an offline sequence
 //! job on a running server, which reads the bag (the same code as an HTTP bag upload); without
 //! --session, the bag's topics.
-use super::remote::{Remote, RemoteArgs};
+use super::remote::{failed, Remote, RemoteArgs};
 use crate::api::jobs::{JobState, JobStatus, MAX_BAG_CHUNK_BYTES, MAX_JOB_FRAMES};
 use crate::bags;
 use anyhow::{bail, Context, Result};
@@ -91,12 +91,15 @@ fn list_topics(files: &[PathBuf]) -> Result<()> {
 }
 
 fn ensure_session(remote: &Remote, id: &str) -> Result<()> {
-    let url = format!("{}/v1/sessions", remote.base);
-    match remote.send(remote.client.post(url).json(&serde_json::json!({ "id": id, "name": id }))) {
-        Ok(_) => Ok(()),
-        Err(e) if e.to_string().starts_with("409") => Ok(()),
-        Err(e) => Err(e.context(format!("creating session {id}"))),
+    let create = remote.client.post(format!("{}/v1/sessions", remote.base));
+    let r = remote.call(create.json(&serde_json::json!({ "id": id, "name": id })))?;
+    if r.status() == reqwest::StatusCode::CONFLICT {
+        return Ok(()); // it exists: the frames go on after its own
     }
+    if !r.status().is_success() {
+        return Err(failed(r).context(format!("creating session {id}")));
+    }
+    Ok(())
 }
 
 fn upload(remote: &Remote, a: &IngestArgs, session: &str, files: &[PathBuf]) -> Result<String> {

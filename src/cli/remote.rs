@@ -43,18 +43,28 @@ impl RemoteArgs {
 }
 
 impl Remote {
-    /// Sends with the key, if any; a non-2xx answer becomes an error carrying the server's message.
-    pub fn send(&self, request: reqwest::blocking::RequestBuilder) -> Result<reqwest::blocking::Response> {
+    /// Sends with the key, if any; the answer whatever its status.
+    pub fn call(&self, request: reqwest::blocking::RequestBuilder) -> Result<reqwest::blocking::Response> {
         let request = match &self.key {
             Some(k) => request.bearer_auth(k),
             None => request,
         };
-        let r = request.send().with_context(|| format!("reaching {}", self.base))?;
-        let status = r.status();
-        if !status.is_success() {
-            let body: serde_json::Value = r.json().unwrap_or_default();
-            anyhow::bail!("{status}: {}", body["error"].as_str().unwrap_or("(no message)"));
+        request.send().with_context(|| format!("reaching {}", self.base))
+    }
+
+    /// As `call`; a non-2xx answer becomes an error carrying the server's message.
+    pub fn send(&self, request: reqwest::blocking::RequestBuilder) -> Result<reqwest::blocking::Response> {
+        let r = self.call(request)?;
+        if !r.status().is_success() {
+            return Err(failed(r));
         }
         Ok(r)
     }
+}
+
+/// A non-2xx answer as an error: its status and the server's message.
+pub fn failed(r: reqwest::blocking::Response) -> anyhow::Error {
+    let status = r.status();
+    let body: serde_json::Value = r.json().unwrap_or_default();
+    anyhow::anyhow!("{status}: {}", body["error"].as_str().unwrap_or("(no message)"))
 }
