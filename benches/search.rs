@@ -202,6 +202,7 @@ fn store_bench() -> anyhow::Result<()> {
                     storage: Storage::F16,
                     default_query: LoopQuery::default(),
                     camera: None,
+                    thumbnails: false,
                 },
             )
             .await?;
@@ -224,6 +225,7 @@ fn store_bench() -> anyhow::Result<()> {
                             metadata: None,
                             descriptor: row.clone(),
                             features: None,
+                            thumbnail: None,
                         };
                         store.add_frames(&session, vec![f]).await?;
                         bar.inc(1);

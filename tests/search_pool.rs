@@ -47,6 +47,7 @@ fn health_checks_answer_while_large_searches_run() {
                     metadata: None,
                     descriptor: descriptors[i % descriptors.len()].clone(),
                     features: None,
+                    thumbnail: None,
                 })
                 .collect();
             svc.store.add_frames(&s, frames).await.unwrap();

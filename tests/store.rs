@@ -62,6 +62,7 @@ fn frame(id: Option<u64>, robot: &str, t: f64, d: &[f32]) -> NewFrame {
         metadata: Some(serde_json::json!({ "camera": "fisheye" })),
         descriptor: d.to_vec(),
         features: None,
+        thumbnail: None,
     }
 }
 
@@ -77,6 +78,7 @@ async fn two_robot_session(store: &Store, id: &str, storage: Storage) {
                 storage,
                 default_query: LoopQuery::default(),
                 camera: None,
+                thumbnails: false,
             },
         )
         .await
@@ -191,6 +193,7 @@ async fn exclusion_window_skips_the_robots_own_recent_frames() {
                 storage: Storage::F16,
                 default_query: LoopQuery::default(),
                 camera: None,
+                thumbnails: false,
             },
         )
         .await
@@ -270,6 +273,7 @@ async fn concurrent_writers_lose_nothing() {
                     storage: Storage::F16,
                     default_query: LoopQuery::default(),
                     camera: None,
+                    thumbnails: false,
                 },
             )
             .await
@@ -320,6 +324,7 @@ async fn bad_writes_get_clear_errors_and_change_nothing() {
                 storage: Storage::F16,
                 default_query: LoopQuery::default(),
                 camera: None,
+                thumbnails: false,
             },
         )
         .await
@@ -334,6 +339,7 @@ async fn bad_writes_get_clear_errors_and_change_nothing() {
                 storage: Storage::F16,
                 default_query: LoopQuery::default(),
                 camera: None,
+                thumbnails: false,
             },
         )
         .await;
@@ -348,6 +354,7 @@ async fn bad_writes_get_clear_errors_and_change_nothing() {
                 storage: Storage::F16,
                 default_query: LoopQuery::default(),
                 camera: None,
+                thumbnails: false,
             },
         )
         .await;
@@ -513,6 +520,7 @@ async fn a_dropped_write_is_never_a_ghost() {
                     storage: Storage::F16,
                     default_query: LoopQuery::default(),
                     camera: None,
+                    thumbnails: false,
                 },
             )
             .await

@@ -203,6 +203,9 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
         ("POST", "/v1/sessions/secret/sequences".into(), None),
         ("GET", "/v1/sessions/secret/loops".into(), None),
         ("GET", "/v1/sessions/secret/export".into(), None),
+        ("GET", "/v1/sessions/secret/frames".into(), None),
+        ("GET", "/v1/sessions/secret/frames/0/thumbnail".into(), None),
+        ("GET", "/v1/sessions/secret/similarity".into(), None),
         ("POST", "/v1/sessions/secret/loops/0/1/verdict".into(), Some(json!({ "accepted": false }))),
         ("GET", format!("/v1/jobs/{job_id}"), None),
         ("GET", "/v1/sessions/acme%2Fsecret".into(), None),
@@ -231,6 +234,8 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
     let verdict =
         pb::SetLoopVerdictRequest { session_id: "secret".into(), query_frame: 1, match_frame: 0, ..Default::default() };
     assert_eq!(blue_g.set_loop_verdict(verdict).await.unwrap_err().code(), nf);
+    let thumbnail = pb::GetThumbnailRequest { session_id: "secret".into(), frame_id: 0 };
+    assert_eq!(blue_g.get_thumbnail(thumbnail).await.unwrap_err().code(), nf);
     let mut answers =
         blue_g.stream_frames(tokio_stream::iter(vec![descriptor_frame("secret", dim, 9)])).await.unwrap().into_inner();
     assert_eq!(answers.message().await.unwrap().unwrap().error_code, nf as i32);
@@ -289,6 +294,23 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
     // being written when it closes the connection (the client then sees a broken pipe).
     let r = http.c.post(format!("{}/v1/embed", http.base)).body(b"\x89PNG not read".to_vec());
     assert_eq!(r.send().await.unwrap().status(), 401, "inference needs a key");
+
+    // The inspector page and its files need no key: they hold no data (the page asks for one).
+    for (path, kind) in [
+        ("/v1/sessions/secret/inspect", "text/html"),
+        ("/v1/inspector/app.js", "text/javascript"),
+        ("/v1/inspector/app.css", "text/css"),
+    ] {
+        let r = http.c.get(format!("{}{path}", http.base)).send().await.unwrap();
+        assert_eq!(r.status(), 200, "{path}");
+        assert!(r.headers()["content-type"].to_str().unwrap().starts_with(kind), "{path}");
+        assert!(r.headers()["content-security-policy"].to_str().unwrap().contains("frame-ancestors 'none'"));
+        assert!(!r.text().await.unwrap().contains("secret"), "{path} holds nothing of the session");
+    }
+    for path in ["/v1/sessions/secret/frames", "/v1/sessions/secret/inspect/x", "/v1/sessions/a/b/inspect"] {
+        let r = http.c.get(format!("{}{path}", http.base)).send().await.unwrap();
+        assert_eq!(r.status(), 401, "{path}: only the page itself is open");
+    }
 
     // Health stays open; metrics are the admin's.
     for path in ["/healthz", "/readyz"] {

@@ -106,6 +106,7 @@ fn session_to_pb(i: SessionInfo) -> pb::Session {
         frames: i.frames as u64,
         robots: i.robots,
         bytes_on_disk: i.bytes_on_disk,
+        thumbnails: i.meta.thumbnails,
     }
 }
 
@@ -163,6 +164,7 @@ fn frame_input(r: pb::AddFrameRequest) -> Result<(String, FrameInput, QueryOverr
         pose: to_pose(r.pose),
         metadata,
         content,
+        thumbnail: None,
     };
     Ok((r.session_id, f, opts))
 }
@@ -204,6 +206,7 @@ impl pb::loopd_server::Loopd for GrpcApi {
             storage,
             default_query: overrides(r.default_query)?,
             camera: camera(r.camera)?,
+            thumbnails: r.thumbnails,
         };
         Ok(Response::new(session_to_pb(self.service.scoped(caller).create_session(create).await?)))
     }
@@ -270,6 +273,13 @@ impl pb::loopd_server::Loopd for GrpcApi {
     async fn set_loop_verdict(&self, req: Request<pb::SetLoopVerdictRequest>) -> Result<Response<pb::Loop>, Status> {
         let caller = caller(&req)?;
         Ok(Response::new(super::grpc_loops::set_verdict(&self.service, caller, req.into_inner()).await?))
+    }
+
+    async fn get_thumbnail(&self, req: Request<pb::GetThumbnailRequest>) -> Result<Response<pb::Thumbnail>, Status> {
+        let caller = caller(&req)?;
+        let r = req.into_inner();
+        let jpeg = self.service.scoped(caller).thumbnail(&r.session_id, r.frame_id)?;
+        Ok(Response::new(pb::Thumbnail { jpeg: jpeg.into() }))
     }
 
     type StreamFramesStream = FrameStream;

@@ -25,6 +25,11 @@ pub fn loop_to_pb(l: LoopRecord) -> pb::Loop {
         inliers: l.inliers,
         relative_pose: l.relative_pose.map(pose_to_pb),
         found: l.found,
+        inlier_matches: l
+            .inlier_matches
+            .iter()
+            .map(|m| pb::InlierMatch { query_x: m[0], query_y: m[1], match_x: m[2], match_y: m[3] })
+            .collect(),
         verdict: l.verdict.map(|v| pb::LoopVerdict {
             accepted: v.accepted,
             relative_pose: v.relative_pose.map(pose_to_pb),

@@ -38,8 +38,13 @@ pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
         .route("/v1/embed", post(embed))
         .route("/v1/sessions", post(create_session).get(list_sessions))
         .route("/v1/sessions/{id}", get(get_session).delete(delete_session))
-        .route("/v1/sessions/{id}/frames", post(add_frame))
+        .route("/v1/sessions/{id}/frames", post(add_frame).get(super::http_inspect::list_frames))
         .route("/v1/sessions/{id}/frames/{frame_id}", get(get_frame))
+        .route("/v1/sessions/{id}/frames/{frame_id}/thumbnail", get(super::http_inspect::thumbnail))
+        .route("/v1/sessions/{id}/similarity", get(super::http_inspect::similarity))
+        .route("/v1/sessions/{id}/inspect", get(super::http_inspect::page))
+        .route("/v1/inspector/app.js", get(super::http_inspect::script))
+        .route("/v1/inspector/app.css", get(super::http_inspect::style))
         .route("/v1/sessions/{id}/query", post(query))
         .route("/v1/sessions/{id}/add_and_query", post(add_and_query))
         .route("/v1/sessions/{id}/loops", get(super::http_loops::list_loops))
@@ -323,6 +328,7 @@ fn frame_input(mut f: FrameFields) -> Result<(FrameInput, QueryOverrides), ApiEr
         pose: f.pose,
         metadata: f.metadata,
         content,
+        thumbnail: None,
     };
     Ok((input, f.options.unwrap_or_default()))
 }
@@ -416,8 +422,8 @@ async fn job_status(
     Ok(Json(s.service.scoped(caller).job(&job_id)?))
 }
 
-/// Who is calling, from `Authorization: Bearer <key>`, before any route runs: health and
-/// readiness are open; metrics and tenant routes take the admin key; everything else a tenant's
+/// Who is calling, from `Authorization: Bearer <key>`, before any route runs: health, readiness
+/// and the inspector's static files (no data; the page asks for a key) are open; metrics and tenant routes take the admin key; everything else a tenant's
 /// key (or the admin's, acting for the default tenant). Keys in the URL are refused (they end up
 /// in logs and browser histories).
 async fn authenticate(
@@ -426,7 +432,7 @@ async fn authenticate(
     next: axum::middleware::Next,
 ) -> axum::response::Response {
     let path = req.uri().path();
-    if path == "/healthz" || path == "/readyz" {
+    if path == "/healthz" || path == "/readyz" || super::http_inspect::is_static(path) {
         return next.run(req).await;
     }
     // Refused before its body is read: an HTTP/1 connection cannot be reused after that (the

@@ -1,7 +1,7 @@
 //! Offline sequences: many images in order, embedded in batches, added to a session and
 //! searched for loops, as a background job whose progress can be polled.
 use super::error::ApiError;
-use super::service::{Content, FrameInput, LoopService, QueryOverrides};
+use super::service::{make_thumbnail, Content, FrameInput, LoopService, QueryOverrides};
 use crate::bags::{self, Selection};
 use crate::files::{is_image, natural_key};
 use crate::store::query::Scope;
@@ -308,13 +308,17 @@ fn save(store: &Store, status: &JobStatus) {
 async fn run(service: LoopService, session: String, seq: SequenceRequest, status: Arc<Mutex<JobStatus>>) {
     let engine = service.engine.clone();
     let width = engine.config().max_batch.max(1);
-    // Embedding runs ahead in batches (order kept); adding and searching go one frame at a time.
+    let thumbnails = service.store.session(&session).is_ok_and(|s| s.meta.thumbnails);
+    let limits = engine.info().limits;
+    // Embedding (and thumbnails) run ahead in batches, order kept; adding and searching go one
+    // frame at a time.
     let mut embedded = futures::stream::iter(seq.frames.into_iter().enumerate())
         .map(|(i, f)| {
             let engine = engine.clone();
             async move {
-                let result = engine.embed_image(f.image, crate::model::network::Variant::FULL).await;
-                (i, f.name, f.robot_id, f.timestamp, result)
+                let embed = engine.embed_image(f.image.clone(), crate::model::network::Variant::FULL);
+                let (result, thumbnail) = tokio::join!(embed, make_thumbnail(&f.image, limits, thumbnails));
+                (i, f.name, f.robot_id, f.timestamp, result, thumbnail)
             }
         })
         .buffered(width);
@@ -330,7 +334,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
     let mut names: HashMap<u64, (usize, String)> = HashMap::new();
     let mut failed = None;
     let mut saved = std::time::Instant::now();
-    while let Some((i, name, robot_id, timestamp, result)) = embedded.next().await {
+    while let Some((i, name, robot_id, timestamp, result, thumbnail)) = embedded.next().await {
         if saved.elapsed() >= SAVE_EVERY {
             // Durable with the next frame's commit.
             save(&service.store, &status.lock());
@@ -352,6 +356,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
             pose: None,
             metadata: Some(serde_json::json!({ "name": name, "index": i })),
             content: Content::Descriptor(descriptor),
+            thumbnail,
         };
         match service.add_and_query(&session, frame, &opts).await {
             Ok((frame_id, matches)) => {

@@ -5,6 +5,7 @@ use super::jobs::{JobStatus, Jobs, SequenceRequest};
 use super::loops::{loop_records, QueryFrame};
 use crate::engine::Engine;
 use crate::model::network::Variant;
+use crate::model::preprocess::ImageLimits;
 use crate::store::query::{LoopQuery, Pose, Scope, MAX_K};
 use crate::store::record::{Camera, FrameHeader};
 use crate::store::{NewFrame, NewSession, Session, SessionInfo, Storage, Store, MAX_CLIENT_FRAME_ID};
@@ -42,10 +43,12 @@ enum QueryFeatures {
     None(String),
 }
 
-/// A frame's picture made ready: its descriptor, and the local features of an image.
+/// A frame's picture made ready: its descriptor, the local features of an image, and its
+/// thumbnail when the session keeps them.
 struct Prepared {
     descriptor: Vec<f32>,
     features: QueryFeatures,
+    thumbnail: Option<Vec<u8>>,
 }
 
 /// A frame's picture: image bytes to embed, or a descriptor computed elsewhere.
@@ -135,6 +138,9 @@ pub struct FrameInput {
     pub pose: Option<Pose>,
     pub metadata: Option<serde_json::Value>,
     pub content: Content,
+    /// A thumbnail made ahead (sequence jobs embed ahead, so their frames come as descriptors);
+    /// None: made here from the image when the session keeps thumbnails.
+    pub thumbnail: Option<Vec<u8>>,
 }
 
 impl FrameInput {
@@ -180,6 +186,27 @@ impl FrameInput {
                 QueryFeatures::Some(f) => Some(f.encode()),
                 QueryFeatures::None(_) => None,
             },
+            thumbnail: self.thumbnail.or(prepared.thumbnail),
+        }
+    }
+}
+
+/// A frame's thumbnail when `wanted`, off the async workers; one that cannot be made is left
+/// out (the frame itself is still stored, or refused by the model for the same picture).
+pub async fn make_thumbnail(bytes: &Bytes, limits: ImageLimits, wanted: bool) -> Option<Vec<u8>> {
+    if !wanted {
+        return None;
+    }
+    let bytes = bytes.clone();
+    match tokio::task::spawn_blocking(move || crate::inspect::thumbnail::make(&bytes, &limits)).await {
+        Ok(Ok(t)) => Some(t),
+        Ok(Err(e)) => {
+            tracing::debug!(error = %e, "no thumbnail");
+            None
+        }
+        Err(e) => {
+            tracing::warn!(error = %e, "thumbnail worker failed");
+            None
         }
     }
 }
@@ -208,6 +235,8 @@ pub struct CreateSession {
     pub default_query: QueryOverrides,
     /// The camera of the session's frames: verified loops then carry the relative pose.
     pub camera: Option<Camera>,
+    /// Keep a small JPEG of each frame (the loop inspector shows them).
+    pub thumbnails: bool,
 }
 
 fn intrinsics(c: &Camera) -> Intrinsics {
@@ -255,6 +284,7 @@ impl LoopService {
                     storage: req.storage,
                     default_query: defaults,
                     camera: req.camera,
+                    thumbnails: req.thumbnails,
                 },
             )
             .await?;
@@ -298,27 +328,38 @@ impl LoopService {
     }
 
     /// The descriptor of a frame's content and, for an image when `features` is asked for, its
-    /// local features, extracted on the verification workers while the model embeds it.
-    async fn prepare(&self, s: &Session, content: Content, features: bool) -> Result<Prepared, ApiError> {
+    /// local features, extracted on the verification workers while the model embeds it (and
+    /// its thumbnail, when `thumbnail` is asked for, on a blocking thread meanwhile).
+    async fn prepare(
+        &self,
+        s: &Session,
+        content: Content,
+        features: bool,
+        thumbnail: bool,
+    ) -> Result<Prepared, ApiError> {
         let bytes = match content {
             Content::Descriptor(descriptor) => {
                 let none = QueryFeatures::None("the query has no image (descriptor only)".into());
-                return Ok(Prepared { descriptor, features: none });
+                return Ok(Prepared { descriptor, features: none, thumbnail: None });
             }
             Content::Image(bytes) => bytes,
         };
         self.check_space(s)?;
+        let limits = self.engine.info().limits;
         let embed = self.engine.embed_image(bytes.clone(), Variant::FULL);
-        if !features {
-            let none = QueryFeatures::None("feature extraction is off".into());
-            return Ok(Prepared { descriptor: embed.await?, features: none });
-        }
-        let (descriptor, extracted) = tokio::join!(embed, self.verifier.extract(bytes, self.engine.info().limits));
+        let extract = async {
+            match features {
+                true => self.verifier.extract(bytes.clone(), limits).await.map_err(|e| format!("no features: {e}")),
+                false => Err("feature extraction is off".to_string()),
+            }
+        };
+        let (descriptor, extracted, thumbnail) =
+            tokio::join!(embed, extract, make_thumbnail(&bytes, limits, thumbnail));
         let features = match extracted {
             Ok(f) => QueryFeatures::Some(Arc::new(f)),
-            Err(e) => QueryFeatures::None(format!("no features: {e}")),
+            Err(why) => QueryFeatures::None(why),
         };
-        Ok(Prepared { descriptor: descriptor?, features })
+        Ok(Prepared { descriptor: descriptor?, features, thumbnail })
     }
 
     /// Whether frames keep their local features (the server's setting).
@@ -335,7 +376,7 @@ impl LoopService {
     pub async fn add_frame(&self, session: &str, mut f: FrameInput) -> Result<u64, ApiError> {
         let (s, t) = self.check_frame(session, &f)?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
-        let prepared = self.prepare(&s, content, self.keeps_features()).await?;
+        let prepared = self.prepare(&s, content, self.keeps_features(), s.meta.thumbnails).await?;
         self.store_frame(&s, f.into_new_frame(t, prepared)).await
     }
 
@@ -451,7 +492,7 @@ impl LoopService {
                 Ok(matches)
             }
             QueryTarget::Content(c) => {
-                let p = self.prepare(&s, c, q.verify.geometric).await?;
+                let p = self.prepare(&s, c, q.verify.geometric, false).await?;
                 let history = History::Live(q.robot_id.clone());
                 Ok(self.search(&s, p.descriptor, &p.features, history, &q).await?.0)
             }
@@ -471,7 +512,8 @@ impl LoopService {
         q.at_time = Some(t);
         q.validate().map_err(ApiError::InvalidArgument)?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
-        let prepared = self.prepare(&s, content, q.verify.geometric || self.keeps_features()).await?;
+        let features = q.verify.geometric || self.keeps_features();
+        let prepared = self.prepare(&s, content, features, s.meta.thumbnails).await?;
         let history = History::Live(Some(f.robot_id.clone()));
         let (matches, votes) = self.search(&s, prepared.descriptor.clone(), &prepared.features, history, &q).await?;
         let prepared = if self.keeps_features() {

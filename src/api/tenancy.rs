@@ -2,10 +2,12 @@
 //! sessions and jobs answered NOT_FOUND (never "forbidden": ids cannot be probed). Both APIs
 //! reach the service through this.
 use super::error::ApiError;
+use super::inspect::FramePage;
 use super::jobs::{JobStatus, SequenceRequest};
 use super::service::{CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
 use crate::auth::quota::{InFlight, Refusal};
 use crate::auth::Caller;
+use crate::inspect::similarity::Similarity;
 use crate::store::loops::{LoopFilter, LoopRecord, Page, Transform};
 use crate::store::record::FrameHeader;
 use crate::store::SessionInfo;
@@ -105,6 +107,21 @@ impl Scoped<'_> {
 
     pub fn frame(&self, session: &str, frame_id: u64) -> Result<FrameHeader, ApiError> {
         self.service.frame(&self.sid(session)?, frame_id)
+    }
+
+    pub fn frames(&self, session: &str, after: Option<u64>, limit: usize) -> Result<FramePage, ApiError> {
+        self.service.frames(&self.sid(session)?, after, limit)
+    }
+
+    pub fn thumbnail(&self, session: &str, frame_id: u64) -> Result<Vec<u8>, ApiError> {
+        self.service.thumbnail(&self.sid(session)?, frame_id)
+    }
+
+    pub async fn similarity(&self, session: &str, size: usize) -> Result<Similarity, ApiError> {
+        let sid = self.sid(session)?;
+        // A matrix costs size² dot products: it counts against the tenant's rate like a query.
+        let _slot = self.admit(0)?;
+        self.service.similarity(&sid, size).await
     }
 
     pub fn loops(&self, session: &str, filter: &LoopFilter) -> Result<Page, ApiError> {

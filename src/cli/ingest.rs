@@ -38,6 +38,10 @@ pub struct IngestArgs {
     /// Frames just before a query that are never its loop.
     #[arg(long)]
     exclude_last_frames: Option<usize>,
+    /// Create the session keeping a small JPEG of each frame (the loop inspector shows them at
+    /// /v1/sessions/SESSION/inspect); an existing session keeps its own setting.
+    #[arg(long)]
+    thumbnails: bool,
     /// Print the finished job (frames, loops, errors) as JSON.
     #[arg(long)]
     json: bool,
@@ -90,9 +94,9 @@ fn list_topics(files: &[PathBuf]) -> Result<()> {
     Ok(())
 }
 
-fn ensure_session(remote: &Remote, id: &str) -> Result<()> {
+fn ensure_session(remote: &Remote, id: &str, thumbnails: bool) -> Result<()> {
     let create = remote.client.post(format!("{}/v1/sessions", remote.base));
-    let r = remote.call(create.json(&serde_json::json!({ "id": id, "name": id })))?;
+    let r = remote.call(create.json(&serde_json::json!({ "id": id, "name": id, "thumbnails": thumbnails })))?;
     if r.status() == reqwest::StatusCode::CONFLICT {
         return Ok(()); // it exists: the frames go on after its own
     }
@@ -151,7 +155,7 @@ pub fn run(a: IngestArgs) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     };
     let remote = a.remote.connect()?;
-    ensure_session(&remote, &session)?;
+    ensure_session(&remote, &session, a.thumbnails)?;
     let job = upload(&remote, &a, &session, &files)?;
     let s = wait(&remote, &job)?;
     if a.json {

@@ -109,6 +109,13 @@ impl SessionIndex {
         self.by_frame.contains_key(&frame_id)
     }
 
+    /// Every frame id, ascending.
+    pub fn frame_ids(&self) -> Vec<u64> {
+        let mut ids: Vec<u64> = self.frames.iter().map(|f| f.frame_id).collect();
+        ids.sort_unstable();
+        ids
+    }
+
     pub fn robots(&self) -> &[String] {
         &self.robots
     }

@@ -54,6 +54,9 @@ pub struct LoopRecord {
     /// From verification, with a camera (monocular: |t| = 1).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub relative_pose: Option<Transform>,
+    /// Up to 100 inlier matches (query x, y, match x, y as fractions of each image's size).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub inlier_matches: Vec<[f32; 4]>,
     /// Unix seconds it was (last) answered.
     pub found: f64,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -202,17 +205,43 @@ impl Session {
 
     /// Every searchable frame's header, in frame id order (exports).
     pub fn headers(&self) -> Result<Vec<(u64, super::record::FrameHeader)>, StoreError> {
+        Ok(self.headers_page(None, usize::MAX)?.0)
+    }
+
+    /// Up to `limit` searchable frames' headers after frame `after`, in frame id order, and the
+    /// last id when more may follow (the next page's `after`).
+    #[allow(clippy::type_complexity)]
+    pub fn headers_page(
+        &self,
+        after: Option<u64>,
+        limit: usize,
+    ) -> Result<(Vec<(u64, super::record::FrameHeader)>, Option<u64>), StoreError> {
+        use super::record::{decode_frame, frame_key, key_frame};
         let trees = self.trees()?;
         let index = self.index.read();
-        let mut out = Vec::with_capacity(index.len());
-        for entry in trees.frames.iter() {
+        let mut out = Vec::new();
+        let range = match after {
+            Some(a) => trees.frames.range(frame_key(a)..),
+            None => trees.frames.iter(),
+        };
+        for entry in range {
             let (k, v) = entry?;
-            let id = super::record::key_frame(&k).ok_or_else(|| StoreError::Storage("bad frame key".into()))?;
-            if index.contains(id) {
-                out.push((id, super::record::decode_frame(&v).map_err(StoreError::Storage)?.0));
+            let id = key_frame(&k).ok_or_else(|| StoreError::Storage("bad frame key".into()))?;
+            if Some(id) == after || !index.contains(id) {
+                continue;
             }
+            if out.len() == limit {
+                let last = out.last().map(|(id, _)| *id);
+                return Ok((out, last));
+            }
+            out.push((id, decode_frame(&v).map_err(StoreError::Storage)?.0));
         }
-        Ok(out)
+        Ok((out, None))
+    }
+
+    /// Every searchable frame id, ascending.
+    pub fn frame_ids(&self) -> Vec<u64> {
+        self.index.read().frame_ids()
     }
 
     /// Every kept loop (exports).

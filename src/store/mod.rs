@@ -69,6 +69,8 @@ pub struct NewFrame {
     /// Local features for verification, opaque to the store (kept beside the frame, written and
     /// removed with it, never read at start-up).
     pub features: Option<Vec<u8>>,
+    /// A small picture of the frame for people (sessions with thumbnails on); kept like features.
+    pub thumbnail: Option<Vec<u8>>,
 }
 
 /// A session to create: everything of its metadata but the id and the creation time.
@@ -81,6 +83,8 @@ pub struct NewSession {
     pub storage: Storage,
     pub default_query: LoopQuery,
     pub camera: Option<record::Camera>,
+    /// Keep a thumbnail of each frame (for the loop inspector).
+    pub thumbnails: bool,
 }
 
 /// What a session holds, for listings.
@@ -100,6 +104,8 @@ struct Trees {
     features: sled::Tree,
     /// Loop candidates answered for its frames (`loops.rs`).
     loops: sled::Tree,
+    /// Thumbnails of its frames (JPEG), by frame key.
+    thumbs: sled::Tree,
 }
 
 pub struct Session {
@@ -143,6 +149,15 @@ fn features_tree_name(id: &str) -> String {
 
 fn loops_tree_name(id: &str) -> String {
     format!("loops/{id}")
+}
+
+fn thumbs_tree_name(id: &str) -> String {
+    format!("thumbs/{id}")
+}
+
+/// Every tree a session owns: what deleting it drops.
+fn trees_of(id: &str) -> [String; 4] {
+    [session_tree_name(id), features_tree_name(id), loops_tree_name(id), thumbs_tree_name(id)]
 }
 
 /// Letters, digits, '-', '_' and '.', with at least one letter or digit ("." and ".." are path
@@ -242,7 +257,7 @@ impl Store {
 
     /// Creates a session; `id` None: the store picks one.
     pub async fn create_session(&self, id: Option<String>, new: NewSession) -> Result<SessionMeta, StoreError> {
-        let NewSession { name, dim, descriptor_id, storage, default_query, camera } = new;
+        let NewSession { name, dim, descriptor_id, storage, default_query, camera, thumbnails } = new;
         if !(1..=65536).contains(&dim) {
             return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
         }
@@ -265,8 +280,17 @@ impl Store {
             }
             let created =
                 std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64();
-            let meta =
-                SessionMeta { id: id.clone(), name, created, dim, descriptor_id, storage, default_query, camera };
+            let meta = SessionMeta {
+                id: id.clone(),
+                name,
+                created,
+                dim,
+                descriptor_id,
+                storage,
+                default_query,
+                camera,
+                thumbnails,
+            };
             let session = Session::load(&disk.db, meta.clone(), self.search)?;
             self.note(disk.sessions.insert(id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises")))?;
             self.sessions.write().insert(id, Arc::new(session));
@@ -306,9 +330,9 @@ impl Store {
             // Its handles go first: sled drops a tree's contents once no handle holds it.
             removed.trees.write().take();
             self.note(disk.sessions.remove(id.as_bytes()))?;
-            self.note(disk.db.drop_tree(session_tree_name(id)))?;
-            self.note(disk.db.drop_tree(features_tree_name(id)))?;
-            self.note(disk.db.drop_tree(loops_tree_name(id)))?;
+            for tree in trees_of(id) {
+                self.note(disk.db.drop_tree(tree))?;
+            }
         }
         self.durable().await
     }
@@ -387,6 +411,7 @@ impl Store {
                         for &done in &written {
                             trees.frames.remove(frame_key(done))?;
                             trees.features.remove(frame_key(done))?;
+                            trees.thumbs.remove(frame_key(done))?;
                         }
                         return Err(StoreError::FrameExists(s.meta.id.clone(), id));
                     }
@@ -402,6 +427,9 @@ impl Store {
             };
             if let Some(features) = &f.features {
                 trees.features.insert(frame_key(id), features.as_slice())?;
+            }
+            if let Some(thumbnail) = &f.thumbnail {
+                trees.thumbs.insert(frame_key(id), thumbnail.as_slice())?;
             }
             added_bytes += (8 + value.len()) as u64;
             written.push(id);
@@ -512,6 +540,14 @@ impl Session {
         Ok(self.trees()?.features.get(frame_key(frame_id))?)
     }
 
+    /// The frame's stored thumbnail, if it has one (searchable frames only).
+    pub fn thumbnail(&self, frame_id: u64) -> Result<Option<sled::IVec>, StoreError> {
+        if !self.index.read().contains(frame_id) {
+            return Err(StoreError::FrameNotFound(self.meta.id.clone(), frame_id));
+        }
+        Ok(self.trees()?.thumbs.get(frame_key(frame_id))?)
+    }
+
     /// A searchable frame's descriptor as the index holds it.
     pub fn descriptor(&self, frame_id: u64) -> Result<Vec<f32>, StoreError> {
         let d = self.index.read().descriptor(frame_id);
@@ -558,6 +594,7 @@ impl Session {
         let trees = self.trees()?;
         trees.frames.remove(frame_key(frame_id))?;
         trees.features.remove(frame_key(frame_id))?;
+        trees.thumbs.remove(frame_key(frame_id))?;
         for key in trees.loops.scan_prefix(frame_key(frame_id)).keys() {
             trees.loops.remove(key?)?;
         }
@@ -633,6 +670,7 @@ impl Trees {
             frames: db.open_tree(session_tree_name(id))?,
             features: db.open_tree(features_tree_name(id))?,
             loops: db.open_tree(loops_tree_name(id))?,
+            thumbs: db.open_tree(thumbs_tree_name(id))?,
         })
     }
 }

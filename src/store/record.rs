@@ -17,6 +17,9 @@ pub struct SessionMeta {
     /// The camera that takes the session's frames: verified loops then carry a relative pose.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera: Option<Camera>,
+    /// Each frame keeps a small JPEG for people to look at (the loop inspector).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub thumbnails: bool,
 }
 
 /// Pinhole intrinsics in pixels, with optional radial-tangential distortion (k1 k2 p1 p2 k3).

@@ -2,7 +2,7 @@
 //! without a restart: the in-memory indexes stay; disk is brought back to what they hold.
 use super::disk::Disk;
 use super::record::key_frame;
-use super::{features_tree_name, loops_tree_name, session_tree_name, Session, Store, StoreError, Trees};
+use super::{trees_of, Session, Store, StoreError, Trees};
 use std::collections::HashSet;
 use std::sync::Arc;
 use std::time::Instant;
@@ -57,9 +57,9 @@ impl Store {
             let id = String::from_utf8_lossy(&key).to_string();
             if !ids.contains(id.as_str()) {
                 disk.sessions.remove(&key)?;
-                disk.db.drop_tree(session_tree_name(&id))?;
-                disk.db.drop_tree(features_tree_name(&id))?;
-                disk.db.drop_tree(loops_tree_name(&id))?;
+                for tree in trees_of(&id) {
+                    disk.db.drop_tree(tree)?;
+                }
                 dropped += 1;
             }
         }

@@ -18,6 +18,9 @@ use super::features::{Features, DESCRIPTOR_BYTES};
 const MIN_POINTS: usize = 8;
 /// Matching is O(n·m); refuse inputs far beyond any sane `max_features` instead of stalling.
 const MAX_POINTS: usize = 20_000;
+/// Inlier matches kept for people to look at (the loop inspector draws them); enough to see
+/// where the views agree, small enough to keep with every loop.
+pub const MAX_SHOWN_INLIERS: usize = 100;
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Intrinsics {
@@ -131,6 +134,10 @@ pub struct Verification {
     /// Only with intrinsics and only when verified; see the module doc for the convention.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub relative_pose: Option<RelativePose>,
+    /// Up to [`MAX_SHOWN_INLIERS`] inlier matches as (query x, y, candidate x, y), each a
+    /// fraction of its image's width or height; kept with the loop, not answered.
+    #[serde(skip)]
+    pub inlier_matches: Vec<[f32; 4]>,
 }
 
 impl Verification {
@@ -147,6 +154,7 @@ impl Verification {
             verified: false,
             reason: Some(reason),
             relative_pose: None,
+            inlier_matches: Vec::new(),
         }
     }
 }
@@ -244,20 +252,21 @@ fn verify_inner(
         pc.push(Point2f::new(c.points[ci][0], c.points[ci][1]));
     }
 
-    let (mut inliers, pose) = match intr {
+    let (mut mask, pose) = match intr {
         None => (fundamental_inliers(&pc, &pq, p).map_err(|e| format!("fundamental RANSAC failed: {e}"))?, None),
         Some(k) => essential_pose(&pc, &pq, k, p).map_err(|e| format!("essential RANSAC failed: {e}"))?,
     };
     // Zero baseline, pure rotation or a planar scene make F/E degenerate, and USAC then rejects
     // the model (identical images give 0 inliers). Such views are still consistent under a
     // homography, which is a valid verification; the pose is then left out (t undefined).
-    if inliers < p.min_inliers {
+    if count(&mask) < p.min_inliers {
         let h = homography_inliers(&pc, &pq, p).map_err(|e| format!("homography RANSAC failed: {e}"))?;
-        if h >= p.min_inliers {
-            inliers = h;
+        if count(&h) >= p.min_inliers {
+            mask = h;
         }
     }
 
+    let inliers = count(&mask);
     if inliers < p.min_inliers {
         return Ok(Verification::rejected(n, inliers, format!("too few inliers ({inliers} < {})", p.min_inliers)));
     }
@@ -268,7 +277,43 @@ fn verify_inner(
         verified: true,
         reason: None,
         relative_pose: pose,
+        inlier_matches: shown_inliers(q, c, &matches, &mask),
     })
+}
+
+fn count(mask: &[bool]) -> usize {
+    mask.iter().filter(|&&m| m).count()
+}
+
+/// The first inliers, each point as a fraction of its image's size (see `inlier_matches`).
+fn shown_inliers(q: &Features, c: &Features, matches: &[(usize, usize)], mask: &[bool]) -> Vec<[f32; 4]> {
+    let (qw, qh) = (q.width.max(1) as f32, q.height.max(1) as f32);
+    let (cw, ch) = (c.width.max(1) as f32, c.height.max(1) as f32);
+    matches
+        .iter()
+        .zip(mask)
+        .filter(|(_, &keep)| keep)
+        .take(MAX_SHOWN_INLIERS)
+        .map(|(&(qi, ci), _)| {
+            let (a, b) = (q.points[qi], c.points[ci]);
+            [a[0] / qw, a[1] / qh, b[0] / cw, b[1] / ch]
+        })
+        .collect()
+}
+
+/// RANSAC's inlier mask as one flag per correspondence (empty: no model).
+fn mask_flags(mask: &Mat, n: usize) -> opencv::Result<Vec<bool>> {
+    if mask.empty() {
+        return Ok(Vec::new());
+    }
+    let m = mask.data_bytes()?;
+    if m.len() != n {
+        return Err(opencv::Error::new(
+            core::StsBadSize,
+            format!("inlier mask has {} entries for {n} points", m.len()),
+        ));
+    }
+    Ok(m.iter().map(|&v| v != 0).collect())
 }
 
 /// Nearest and second-nearest neighbour of one query descriptor in the candidate set.
@@ -370,7 +415,7 @@ fn iters(p: &VerifyParams) -> i32 {
     i32::try_from(p.max_iters.max(1)).unwrap_or(i32::MAX)
 }
 
-fn fundamental_inliers(pc: &Vector<Point2f>, pq: &Vector<Point2f>, p: &VerifyParams) -> opencv::Result<usize> {
+fn fundamental_inliers(pc: &Vector<Point2f>, pq: &Vector<Point2f>, p: &VerifyParams) -> opencv::Result<Vec<bool>> {
     let mut mask = Mat::default();
     let f = calib3d::find_fundamental_mat(
         pc,
@@ -382,13 +427,13 @@ fn fundamental_inliers(pc: &Vector<Point2f>, pq: &Vector<Point2f>, p: &VerifyPar
         &mut mask,
     )?;
     // Empty F means RANSAC found no model (degenerate configuration).
-    if f.empty() || mask.empty() {
-        return Ok(0);
+    if f.empty() {
+        return Ok(Vec::new());
     }
-    Ok(core::count_non_zero(&mask)? as usize)
+    mask_flags(&mask, pc.len())
 }
 
-fn homography_inliers(pc: &Vector<Point2f>, pq: &Vector<Point2f>, p: &VerifyParams) -> opencv::Result<usize> {
+fn homography_inliers(pc: &Vector<Point2f>, pq: &Vector<Point2f>, p: &VerifyParams) -> opencv::Result<Vec<bool>> {
     let mut mask = Mat::default();
     let h = calib3d::find_homography_ext(
         pc,
@@ -399,10 +444,10 @@ fn homography_inliers(pc: &Vector<Point2f>, pq: &Vector<Point2f>, p: &VerifyPara
         iters(p),
         p.confidence,
     )?;
-    if h.empty() || mask.empty() {
-        return Ok(0);
+    if h.empty() {
+        return Ok(Vec::new());
     }
-    Ok(core::count_non_zero(&mask)? as usize)
+    mask_flags(&mask, pc.len())
 }
 
 fn essential_pose(
@@ -410,7 +455,7 @@ fn essential_pose(
     pq: &Vector<Point2f>,
     k: &Intrinsics,
     p: &VerifyParams,
-) -> opencv::Result<(usize, Option<RelativePose>)> {
+) -> opencv::Result<(Vec<bool>, Option<RelativePose>)> {
     let kmat = k.camera_matrix()?;
     let (pc, pq) = match k.dist {
         Some(d) => (undistort(pc, &kmat, &d)?, undistort(pq, &kmat, &d)?),
@@ -428,17 +473,17 @@ fn essential_pose(
         &mut mask,
     )?;
     // findEssentialMat may return several stacked 3x3 solutions (3k x 3); only 3x3 is usable.
-    if e.rows() != 3 || e.cols() != 3 || mask.empty() {
-        return Ok((0, None));
+    if e.rows() != 3 || e.cols() != 3 {
+        return Ok((Vec::new(), None));
     }
-    let inliers = core::count_non_zero(&mask)? as usize;
-    if inliers < p.min_inliers {
+    let inliers = mask_flags(&mask, pc.len())?;
+    if count(&inliers) < p.min_inliers {
         return Ok((inliers, None));
     }
     let (mut r, mut t) = (Mat::default(), Mat::default());
     // RANSAC keeps the minimal-sample E; a least-squares 8-point E on all inliers (normalised
     // coordinates) halves the rotation error on the EuRoC loops (see the prototype report).
-    let (nc, nq) = normalized_inliers(&pc, &pq, &mask, k)?;
+    let (nc, nq) = normalized_inliers(&pc, &pq, &inliers, k)?;
     if nc.len() < MIN_POINTS {
         return Ok((inliers, None));
     }
@@ -457,21 +502,14 @@ fn essential_pose(
 fn normalized_inliers(
     pc: &Vector<Point2f>,
     pq: &Vector<Point2f>,
-    mask: &Mat,
+    inliers: &[bool],
     k: &Intrinsics,
 ) -> opencv::Result<(Vector<Point2f>, Vector<Point2f>)> {
-    let m = mask.data_bytes()?;
-    if m.len() != pc.len() {
-        return Err(opencv::Error::new(
-            core::StsBadSize,
-            format!("inlier mask has {} entries for {} points", m.len(), pc.len()),
-        ));
-    }
     let norm = |p: Point2f| Point2f::new(((p.x as f64 - k.cx) / k.fx) as f32, ((p.y as f64 - k.cy) / k.fy) as f32);
     let mut nc = Vector::new();
     let mut nq = Vector::new();
-    for (i, &keep) in m.iter().enumerate() {
-        if keep != 0 {
+    for (i, &keep) in inliers.iter().enumerate() {
+        if keep {
             nc.push(norm(pc.get(i)?));
             nq.push(norm(pq.get(i)?));
         }

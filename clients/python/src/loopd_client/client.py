@@ -84,10 +84,12 @@ class Client:
     # Sessions.
     def create_session(self, id: str = "", name: str = "", *, camera: Optional[Sequence[float]] = None,
                        storage: int = pb.STORAGE_UNSPECIFIED, default_query: Optional[pb.QueryOptions] = None,
-                       exist_ok: bool = False) -> pb.Session:
+                       thumbnails: bool = False, exist_ok: bool = False) -> pb.Session:
         """A new session; `camera` is fx, fy, cx, cy[, k1, k2, p1, p2, k3] (verified loops then
-        carry a relative pose). With `exist_ok` an existing session of that id is returned."""
-        request = pb.CreateSessionRequest(id=id, name=name or id, storage=storage, default_query=default_query)
+        carry a relative pose); `thumbnails` keeps a small JPEG of each frame (the loop
+        inspector shows them). With `exist_ok` an existing session of that id is returned."""
+        request = pb.CreateSessionRequest(id=id, name=name or id, storage=storage, default_query=default_query,
+                                          thumbnails=thumbnails)
         if camera is not None:
             v = [float(x) for x in camera]
             request.camera.CopyFrom(pb.Camera(fx=v[0], fy=v[1], cx=v[2], cy=v[3], distortion=v[4:]))
@@ -211,6 +213,10 @@ class Client:
                                            accepted=accepted, relative_pose=relative_pose,
                                            covariance=list(covariance or []))
         return self._unary(self._stub.SetLoopVerdict, request)
+
+    def thumbnail(self, session: str, frame_id: int) -> bytes:
+        """A frame's thumbnail (JPEG) in a session created with `thumbnails`."""
+        return self._unary(self._stub.GetThumbnail, pb.GetThumbnailRequest(session_id=session, frame_id=frame_id)).jpeg
 
     def stream(self, session: str, robot: str, frames: Iterable[Frame],
                options: Optional[pb.QueryOptions] = None, window: int = 64) -> Iterator[Answer]:
