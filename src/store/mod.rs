@@ -5,6 +5,7 @@ pub mod durability;
 pub mod index;
 pub mod kernels;
 pub mod loops;
+pub mod pg;
 pub mod query;
 pub mod record;
 mod records;
@@ -24,7 +25,7 @@ use std::sync::Arc;
 use std::time::Instant;
 use tokio::sync::Semaphore;
 
-#[derive(Debug, thiserror::Error, PartialEq)]
+#[derive(Clone, Debug, thiserror::Error, PartialEq)]
 pub enum StoreError {
     #[error("session '{0}' not found")]
     SessionNotFound(String),

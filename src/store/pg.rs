@@ -1,0 +1,339 @@
+//! The durable frame log on PostgreSQL with synchronous replication (issue #17, first step): the
+//! cluster's copy of every session and frame, beside which loopd nodes keep their in-memory exact
+//! indexes (`SessionIndex`), rebuilt from it. Not yet behind `loopd serve --cluster`: the seam in
+//! `Store`, membership, forwarding and the failover suite are still to come (docs/cluster.md).
+//!
+//! Schema: `loopd_sessions(id, tbl, meta, version, next_frame_id)` and one table per session,
+//! `loopd_frames_<tbl>(frame_id, seq, write_id, record)`, so deleting a session is a DROP TABLE as it
+//! is a dropped tree in sled. `record` is the sled frame record (`record.rs`: header JSON and the
+//! descriptor in the session's storage). A batch is one transaction under the session row's lock:
+//! `seq` follows commit order per session, and `version` is the highest `seq` committed, so a
+//! node that has applied every `seq <= v` holds every frame acknowledged up to `v`.
+//!
+//! A batch is acknowledged only when its COMMIT returned, and the connection refuses a server
+//! whose commits do not wait for a synchronous standby (`synchronous_commit` on or stronger and
+//! `synchronous_standby_names` set), unless it is opened with `Replication::NotRequired`.
+use super::record::{decode_frame, encode_frame, FrameHeader, SessionMeta, Storage};
+use super::{NewFrame, StoreError};
+use deadpool_postgres::{Manager, ManagerConfig, Pool, RecyclingMethod};
+use tokio_postgres::error::SqlState;
+use tokio_postgres::types::ToSql;
+use tokio_postgres::NoTls;
+
+/// Whether the server must make each commit wait for a synchronous standby.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Replication {
+    Synchronous,
+    /// Tests and single-host trials only: an acknowledged frame may be lost with the primary.
+    NotRequired,
+}
+
+pub struct PgLog {
+    pool: Pool,
+    /// Each session's writer queue (see `write_session`).
+    writers: parking_lot::Mutex<std::collections::HashMap<String, tokio::sync::mpsc::UnboundedSender<Request>>>,
+}
+
+/// A batch as committed: the frames' ids in order, and the session's version after it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Appended {
+    pub ids: Vec<u64>,
+    pub version: i64,
+}
+
+/// A frame read back from the log.
+#[derive(Debug)]
+pub struct LoggedFrame {
+    pub seq: i64,
+    pub frame_id: u64,
+    pub header: FrameHeader,
+    pub descriptor: Vec<f32>,
+}
+
+const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS loopd_sessions (
+    id text PRIMARY KEY,
+    tbl bigint GENERATED ALWAYS AS IDENTITY UNIQUE,
+    meta jsonb NOT NULL,
+    version bigint NOT NULL DEFAULT 0,
+    next_frame_id bigint NOT NULL DEFAULT 0
+)";
+
+/// Transient: the database cannot be reached or is switching primaries; retry later. A commit
+/// whose answer was lost may or may not have happened: frames with ids make the retry exact
+/// (a stored one answers already-exists).
+fn unavailable(e: &tokio_postgres::Error) -> StoreError {
+    StoreError::Unavailable(format!("the cluster database is unavailable ({e}); retry later"))
+}
+
+fn pg_error(e: tokio_postgres::Error) -> StoreError {
+    match e.as_db_error() {
+        // Server-side errors are answers: the statement ran and was refused.
+        Some(db) if *db.code() == SqlState::READ_ONLY_SQL_TRANSACTION => unavailable(&e),
+        Some(db) => StoreError::Storage(format!("database: {}", db.message())),
+        None => unavailable(&e),
+    }
+}
+
+fn pool_error(e: deadpool_postgres::PoolError) -> StoreError {
+    match e {
+        deadpool_postgres::PoolError::Backend(e) => pg_error(e),
+        other => StoreError::Unavailable(format!("the cluster database is unavailable ({other}); retry later")),
+    }
+}
+
+fn frames_table(tbl: i64) -> String {
+    format!("loopd_frames_{tbl}")
+}
+
+impl PgLog {
+    /// Connects (a multi-host URL with `target_session_attrs=read-write` finds the primary),
+    /// creates the schema if missing and checks that commits wait for a synchronous standby.
+    pub async fn connect(url: &str, max_connections: usize, replication: Replication) -> Result<Self, StoreError> {
+        let config: tokio_postgres::Config =
+            url.parse().map_err(|e| StoreError::InvalidArgument(format!("cluster URL: {e}")))?;
+        let manager = Manager::from_config(config, NoTls, ManagerConfig { recycling_method: RecyclingMethod::Fast });
+        let pool = Pool::builder(manager)
+            .max_size(max_connections.max(1))
+            .build()
+            .map_err(|e| StoreError::InvalidArgument(format!("cluster pool: {e}")))?;
+        let log = Self { pool, writers: Default::default() };
+        let client = log.client().await?;
+        client.batch_execute(SCHEMA).await.map_err(pg_error)?;
+        if replication == Replication::Synchronous {
+            let commit: String = client.query_one("SHOW synchronous_commit", &[]).await.map_err(pg_error)?.get(0);
+            let standbys: String =
+                client.query_one("SHOW synchronous_standby_names", &[]).await.map_err(pg_error)?.get(0);
+            if standbys.trim().is_empty() || !matches!(commit.as_str(), "on" | "remote_write" | "remote_apply") {
+                return Err(StoreError::InvalidArgument(format!(
+                    "the cluster database does not wait for a synchronous standby (synchronous_commit = {commit}, \
+                     synchronous_standby_names = '{standbys}'): an acknowledged frame could be lost with the primary"
+                )));
+            }
+        }
+        Ok(log)
+    }
+
+    async fn client(&self) -> Result<deadpool_postgres::Object, StoreError> {
+        self.pool.get().await.map_err(pool_error)
+    }
+
+    /// Creates a session and its frames table, in one transaction.
+    pub async fn create_session(&self, meta: &SessionMeta) -> Result<(), StoreError> {
+        let json = serde_json::to_value(meta).map_err(|e| StoreError::Storage(e.to_string()))?;
+        let mut client = self.client().await?;
+        let tx = client.transaction().await.map_err(pg_error)?;
+        let sql = "INSERT INTO loopd_sessions (id, meta) VALUES ($1, $2) ON CONFLICT DO NOTHING RETURNING tbl";
+        let Some(row) = tx.query_opt(sql, &[&meta.id, &json]).await.map_err(pg_error)? else {
+            return Err(StoreError::SessionExists(meta.id.clone()));
+        };
+        let table = frames_table(row.get(0));
+        // Descriptors are incompressible: EXTERNAL keeps them out of line without trying.
+        let ddl = format!(
+            "CREATE TABLE {table} (frame_id bigint PRIMARY KEY, seq bigint NOT NULL UNIQUE, \
+             write_id bigint NOT NULL, record bytea NOT NULL); \
+             ALTER TABLE {table} ALTER COLUMN record SET STORAGE EXTERNAL"
+        );
+        tx.batch_execute(&ddl).await.map_err(pg_error)?;
+        tx.commit().await.map_err(pg_error)
+    }
+
+    /// Every session's metadata and version.
+    pub async fn sessions(&self) -> Result<Vec<(SessionMeta, i64)>, StoreError> {
+        let rows = self
+            .client()
+            .await?
+            .query("SELECT meta, version FROM loopd_sessions ORDER BY id", &[])
+            .await
+            .map_err(pg_error)?;
+        rows.iter()
+            .map(|r| {
+                let meta: serde_json::Value = r.get(0);
+                let meta =
+                    serde_json::from_value(meta).map_err(|e| StoreError::Storage(format!("session meta: {e}")))?;
+                Ok((meta, r.get(1)))
+            })
+            .collect()
+    }
+
+    /// The session's version: the `seq` of its last committed frame (0: none).
+    pub async fn version(&self, session: &str) -> Result<i64, StoreError> {
+        let row = self.client().await?.query_opt("SELECT version FROM loopd_sessions WHERE id = $1", &[&session]).await;
+        row.map_err(pg_error)?.map(|r| r.get(0)).ok_or_else(|| StoreError::SessionNotFound(session.into()))
+    }
+
+    /// Drops a session and its frames, in one transaction.
+    pub async fn delete_session(&self, session: &str) -> Result<(), StoreError> {
+        let mut client = self.client().await?;
+        let tx = client.transaction().await.map_err(pg_error)?;
+        let row = tx.query_opt("DELETE FROM loopd_sessions WHERE id = $1 RETURNING tbl", &[&session]).await;
+        let tbl: i64 = row.map_err(pg_error)?.ok_or_else(|| StoreError::SessionNotFound(session.into()))?.get(0);
+        tx.batch_execute(&format!("DROP TABLE {}", frames_table(tbl))).await.map_err(pg_error)?;
+        tx.commit().await.map_err(pg_error)?;
+        // Its writer ends once the requests already queued are answered (SessionNotFound).
+        self.writers.lock().remove(session);
+        Ok(())
+    }
+
+    /// Appends a batch of frames (descriptors already normalised), all or none: a frame id
+    /// already stored, in the session or twice in the batch, refuses the whole batch with
+    /// `FrameExists`. Returns once the commit has reached a synchronous standby. Batches sent to
+    /// a session at the same time share one transaction (each under its own savepoint), so a
+    /// session's throughput is not one commit round trip per batch.
+    pub async fn append(&self, meta: &SessionMeta, frames: &[NewFrame]) -> Result<Appended, StoreError> {
+        if frames.is_empty() {
+            return Ok(Appended { ids: Vec::new(), version: self.version(&meta.id).await? });
+        }
+        let (done, answer) = tokio::sync::oneshot::channel();
+        let request = Request { frames: frames.to_vec(), storage: meta.storage, done };
+        let queue = {
+            let mut writers = self.writers.lock();
+            writers
+                .entry(meta.id.clone())
+                .or_insert_with(|| {
+                    let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
+                    tokio::spawn(write_session(self.pool.clone(), meta.id.clone(), rx));
+                    tx
+                })
+                .clone()
+        };
+        queue.send(request).map_err(|_| StoreError::Unavailable("the session's writer stopped; retry".into()))?;
+        answer.await.map_err(|_| StoreError::Unavailable("the session's writer stopped; retry".into()))?
+    }
+
+    /// The session's frames with `seq > after`, in `seq` order: a cold load (after 0) or the tail
+    /// a node has not applied yet.
+    pub async fn frames(&self, session: &str, after: i64) -> Result<Vec<LoggedFrame>, StoreError> {
+        let client = self.client().await?;
+        let row = client.query_opt("SELECT tbl FROM loopd_sessions WHERE id = $1", &[&session]).await;
+        let tbl: i64 = row.map_err(pg_error)?.ok_or_else(|| StoreError::SessionNotFound(session.into()))?.get(0);
+        let sql = format!("SELECT seq, frame_id, record FROM {} WHERE seq > $1 ORDER BY seq", frames_table(tbl));
+        let rows = client.query(&sql, &[&after]).await.map_err(pg_error)?;
+        rows.iter()
+            .map(|r| {
+                let (seq, frame_id, record): (i64, i64, Vec<u8>) = (r.get(0), r.get(1), r.get(2));
+                let (header, descriptor) = decode_frame(&record).map_err(StoreError::Storage)?;
+                Ok(LoggedFrame { seq, frame_id: frame_id as u64, header, descriptor })
+            })
+            .collect()
+    }
+}
+
+/// One `append` call waiting for its group's commit.
+struct Request {
+    frames: Vec<NewFrame>,
+    storage: Storage,
+    done: tokio::sync::oneshot::Sender<Result<Appended, StoreError>>,
+}
+
+/// Frames one transaction takes at most (requests beyond wait for the next one).
+const MAX_GROUP_FRAMES: usize = 512;
+
+/// A session's writer: takes every request waiting and commits them in one transaction, until
+/// the session's queue is dropped (the session was deleted or the log closed).
+async fn write_session(pool: Pool, session: String, mut queue: tokio::sync::mpsc::UnboundedReceiver<Request>) {
+    while let Some(first) = queue.recv().await {
+        let mut group = vec![first];
+        let mut frames = group[0].frames.len();
+        while frames < MAX_GROUP_FRAMES {
+            match queue.try_recv() {
+                Ok(r) => {
+                    frames += r.frames.len();
+                    group.push(r);
+                }
+                Err(_) => break,
+            }
+        }
+        let (answers, committed) = match commit_group(&pool, &session, &group).await {
+            Ok(answers) => (answers, None),
+            Err(e) => (Vec::new(), Some(e)),
+        };
+        for (i, r) in group.into_iter().enumerate() {
+            let answer = match &committed {
+                Some(e) => Err(e.clone()),
+                None => answers[i].clone(),
+            };
+            let _ = r.done.send(answer);
+        }
+    }
+}
+
+/// One transaction for a group of requests, each all or none under its savepoint; what each
+/// request is answered once the commit returned.
+async fn commit_group(
+    pool: &Pool,
+    session: &str,
+    group: &[Request],
+) -> Result<Vec<Result<Appended, StoreError>>, StoreError> {
+    let mut client = pool.get().await.map_err(pool_error)?;
+    let tx = client.transaction().await.map_err(pg_error)?;
+    // The session row's lock orders the groups of a session: seq follows commit order.
+    let row = tx
+        .query_opt("SELECT tbl, version, next_frame_id FROM loopd_sessions WHERE id = $1 FOR UPDATE", &[&session])
+        .await
+        .map_err(pg_error)?
+        .ok_or_else(|| StoreError::SessionNotFound(session.into()))?;
+    let (tbl, mut version, mut next): (i64, i64, i64) = (row.get(0), row.get(1), row.get(2));
+    let sql = format!("INSERT INTO {} (frame_id, seq, write_id, record) VALUES ($1, $2, $3, $4)", frames_table(tbl));
+    let insert = tx.prepare(&sql).await.map_err(pg_error)?;
+    let write_id: i64 = rand::random();
+    let mut answers = Vec::with_capacity(group.len());
+    for r in group {
+        let (version_before, next_before) = (version, next);
+        tx.batch_execute("SAVEPOINT request").await.map_err(pg_error)?;
+        // Rows first (ids, seqs, records), then their INSERTs pipelined on the connection.
+        let mut rows = Vec::with_capacity(r.frames.len());
+        let mut refused = None;
+        for f in &r.frames {
+            let Ok(id) = f.frame_id.map_or(Ok(next), i64::try_from) else {
+                refused = Some(StoreError::InvalidArgument("frame id is above 2^63 - 1".into()));
+                break;
+            };
+            next = next.max(id.saturating_add(1));
+            version += 1;
+            let header = FrameHeader {
+                robot_id: f.robot_id.clone(),
+                timestamp: f.timestamp,
+                pose: f.pose,
+                metadata: f.metadata.clone(),
+            };
+            rows.push((id, version, encode_frame(&header, &f.descriptor, r.storage)));
+        }
+        let mut ids = Vec::with_capacity(rows.len());
+        if refused.is_none() {
+            let params: Vec<[&(dyn ToSql + Sync); 4]> =
+                rows.iter().map(|(id, seq, record)| [id as &(dyn ToSql + Sync), seq, &write_id, record]).collect();
+            let inserts = params.iter().map(|p| tx.execute(&insert, p));
+            for (result, (id, _, _)) in futures::future::join_all(inserts).await.into_iter().zip(&rows) {
+                match result {
+                    Ok(_) => ids.push(*id as u64),
+                    Err(e) if e.code() == Some(&SqlState::UNIQUE_VIOLATION) => {
+                        refused.get_or_insert(StoreError::FrameExists(session.into(), *id as u64));
+                    }
+                    // The statements after a refused one fail as the transaction is aborted.
+                    Err(e) if e.code() == Some(&SqlState::IN_FAILED_SQL_TRANSACTION) && refused.is_some() => {}
+                    Err(e) => return Err(pg_error(e)),
+                }
+            }
+        }
+        match refused {
+            // This request's frames go; the others' stay.
+            Some(e) => {
+                tx.batch_execute("ROLLBACK TO SAVEPOINT request").await.map_err(pg_error)?;
+                (version, next) = (version_before, next_before);
+                answers.push(Err(e));
+            }
+            None => {
+                tx.batch_execute("RELEASE SAVEPOINT request").await.map_err(pg_error)?;
+                answers.push(Ok(Appended { ids, version }));
+            }
+        }
+    }
+    tx.execute(
+        "UPDATE loopd_sessions SET version = $2, next_frame_id = $3 WHERE id = $1",
+        &[&session, &version, &next],
+    )
+    .await
+    .map_err(pg_error)?;
+    tx.commit().await.map_err(pg_error)?;
+    Ok(answers)
+}

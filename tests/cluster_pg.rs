@@ -1,0 +1,198 @@
+//! The cluster's frame log (issue #17, first step) on a real PostgreSQL 15 primary with one
+//! synchronous standby on loopback, started by `scripts/pg-replicated` (Debian's postgresql-15),
+//! which runs these (`--ignored`: they need that database). Frames are descriptors of real
+//! corridor images. Asserted: an acknowledgement waits for the standby (none while it is down),
+//! batches are all or none, a stored frame id answers already-exists (exact retries), versions
+//! follow commit order and a reload gives the frames back bit for bit (f32) in that order, a
+//! deleted session is gone, and a primary whose commits do not wait for a standby is refused.
+use loopd::store::pg::{PgLog, Replication};
+use loopd::store::record::{SessionMeta, Storage};
+use loopd::store::{normalize, NewFrame, StoreError};
+use std::process::Command;
+use std::time::Duration;
+
+fn env(name: &str) -> String {
+    std::env::var(name).unwrap_or_else(|_| panic!("{name} is unset: run these through scripts/pg-replicated"))
+}
+
+/// `pg_ctl` on the standby (as the postgres user, as the script started it).
+fn standby(action: &str) {
+    let dir = env("LOOPD_PG_STANDBY");
+    let mut c = Command::new("runuser");
+    c.args(["-u", "postgres", "--"]).arg(format!("{}/pg_ctl", env("LOOPD_PG_BIN"))).args(["-D", &dir, "-w"]);
+    match action {
+        "stop" => c.args(["stop", "-m", "fast"]),
+        _ => c.args(["start", "-l", &format!("{dir}.log")]),
+    };
+    assert!(c.status().unwrap().success(), "pg_ctl {action} on the standby");
+}
+
+fn psql(sql: &str) -> String {
+    let out = Command::new("psql").args([&env("LOOPD_PG_URL"), "-tAc", sql]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).trim().to_string()
+}
+
+fn meta(id: &str) -> SessionMeta {
+    SessionMeta {
+        id: id.into(),
+        name: id.into(),
+        created: 0.0,
+        dim: 3 * 32,
+        descriptor_id: "corridor-pixels".into(),
+        storage: Storage::F32,
+        default_query: Default::default(),
+        camera: None,
+        thumbnails: false,
+    }
+}
+
+/// A corridor reference frame as a small descriptor (its 8x4 RGB miniature): real pictures, no
+/// model needed for the log.
+fn frame(i: usize, id: Option<u64>) -> NewFrame {
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let path = root.join(format!("../shared/data/corridor/ref/{:07}.jpg", i % 111));
+    let img = image::open(&path).expect("corridor frame in ../shared/data").to_rgb8();
+    let small = image::imageops::resize(&img, 8, 4, image::imageops::FilterType::Triangle);
+    let mut descriptor: Vec<f32> = small.pixels().flat_map(|p| p.0.map(|v| v as f32 + 1.0)).collect();
+    normalize(&mut descriptor).unwrap();
+    NewFrame {
+        frame_id: id,
+        robot_id: "mapper".into(),
+        timestamp: i as f64,
+        pose: None,
+        metadata: Some(serde_json::json!({ "index": i })),
+        descriptor,
+        features: None,
+        thumbnail: None,
+    }
+}
+
+async fn log() -> PgLog {
+    PgLog::connect(&env("LOOPD_PG_URL"), 4, Replication::Synchronous).await.expect("connect")
+}
+
+#[tokio::test]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn frames_are_acknowledged_after_the_standby_has_them_in_commit_order() {
+    let log = std::sync::Arc::new(log().await);
+    let m = meta("hall");
+    log.create_session(&m).await.unwrap();
+    assert_eq!(log.create_session(&m).await, Err(StoreError::SessionExists("hall".into())));
+
+    // Client ids and server ids in one batch; the next auto id follows the highest stored.
+    let a = log.append(&m, &[frame(0, Some(10)), frame(1, None), frame(2, Some(3))]).await.unwrap();
+    assert_eq!((a.ids.as_slice(), a.version), ([10, 11, 3].as_slice(), 3));
+    let b = log.append(&m, &[frame(3, None), frame(4, None)]).await.unwrap();
+    assert_eq!((b.ids.as_slice(), b.version), ([12, 13].as_slice(), 5));
+
+    // All or none: a taken id (stored, or twice in the batch) refuses the batch; a retry of a
+    // stored frame answers already-exists, so a lost acknowledgement is retried exactly.
+    for batch in [vec![frame(5, None), frame(0, Some(10))], vec![frame(5, Some(40)), frame(6, Some(40))]] {
+        let e = log.append(&m, &batch).await.unwrap_err();
+        assert!(matches!(e, StoreError::FrameExists(_, 10 | 40)), "{e:?}");
+    }
+    assert_eq!(log.version("hall").await.unwrap(), 5, "refused batches leave nothing");
+
+    // No acknowledgement while the synchronous standby is down: the commit waits for it.
+    standby("stop");
+    let waiting = {
+        let (log, m) = (log.clone(), m.clone());
+        tokio::spawn(async move { log.append(&m, &[frame(7, Some(70))]).await })
+    };
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    assert!(!waiting.is_finished(), "acknowledged without a synchronous standby");
+    standby("start");
+    let c =
+        tokio::time::timeout(Duration::from_secs(60), waiting).await.expect("acknowledged once the standby is back");
+    assert_eq!(c.unwrap().unwrap().version, 6);
+    let sync = psql("SELECT sync_state FROM pg_stat_replication");
+    assert_eq!(sync, "quorum", "the standby is synchronous again");
+
+    // A reload gives every frame back in commit order, bit for bit, with its header.
+    let back = log.frames("hall", 0).await.unwrap();
+    let ids: Vec<u64> = back.iter().map(|f| f.frame_id).collect();
+    assert_eq!(ids, [10, 11, 3, 12, 13, 70]);
+    assert_eq!(back.iter().map(|f| f.seq).collect::<Vec<_>>(), [1, 2, 3, 4, 5, 6]);
+    for (f, i) in back.iter().zip([0, 1, 2, 3, 4, 7]) {
+        let sent = frame(i, None);
+        assert_eq!((f.descriptor.as_slice(), f.header.timestamp), (sent.descriptor.as_slice(), i as f64));
+        assert_eq!(f.header.metadata, sent.metadata);
+    }
+    let tail = log.frames("hall", 4).await.unwrap();
+    assert_eq!(tail.iter().map(|f| f.frame_id).collect::<Vec<_>>(), [13, 70], "the tail after version 4");
+
+    // Sessions are listed with their version; a deleted one is gone with its table.
+    let listed = log.sessions().await.unwrap();
+    assert!(listed.iter().any(|(s, v)| s == &m && *v == 6), "{listed:?}");
+    log.delete_session("hall").await.unwrap();
+    assert_eq!(log.version("hall").await, Err(StoreError::SessionNotFound("hall".into())));
+    assert_eq!(log.delete_session("hall").await, Err(StoreError::SessionNotFound("hall".into())));
+    assert_eq!(psql("SELECT count(*) FROM pg_tables WHERE tablename LIKE 'loopd_frames_%'"), "0");
+    log.create_session(&m).await.unwrap();
+    assert_eq!(
+        log.append(&m, &[frame(0, None)]).await.unwrap(),
+        loopd::store::pg::Appended { ids: vec![0], version: 1 }
+    );
+    log.delete_session("hall").await.unwrap();
+}
+
+#[tokio::test]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn a_primary_that_does_not_wait_for_a_standby_is_refused() {
+    psql("ALTER SYSTEM SET synchronous_standby_names = ''");
+    psql("SELECT pg_reload_conf()");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let refused = PgLog::connect(&env("LOOPD_PG_URL"), 1, Replication::Synchronous).await;
+    let allowed = PgLog::connect(&env("LOOPD_PG_URL"), 1, Replication::NotRequired).await;
+    psql("ALTER SYSTEM RESET synchronous_standby_names");
+    psql("SELECT pg_reload_conf()");
+    let e = refused.err().expect("refused");
+    assert!(e.to_string().contains("does not wait for a synchronous standby"), "{e}");
+    assert!(allowed.is_ok(), "NotRequired connects");
+    // A URL that names only the standby finds no read-write server.
+    let standby_only =
+        format!("postgres://postgres@127.0.0.1:{}/loopd?target_session_attrs=read-write", env("LOOPD_PG_STANDBY_PORT"));
+    let e = PgLog::connect(&standby_only, 1, Replication::Synchronous).await.err().expect("no primary there");
+    assert!(matches!(e, StoreError::Unavailable(_)), "{e:?}");
+}
+
+#[tokio::test]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn concurrent_batches_commit_together_and_a_refused_one_alone() {
+    let log = std::sync::Arc::new(log().await);
+    let m = meta("yard");
+    log.create_session(&m).await.unwrap();
+    log.append(&m, &[frame(0, Some(5))]).await.unwrap();
+    // 24 writers at once, two frames each; writer 7 repeats the stored id 5.
+    let tasks: Vec<_> = (0..24u64)
+        .map(|w| {
+            let (log, m) = (log.clone(), m.clone());
+            let ids = if w == 7 { [Some(1000), Some(5)] } else { [Some(100 + 2 * w), Some(101 + 2 * w)] };
+            tokio::spawn(async move { log.append(&m, &[frame(w as usize, ids[0]), frame(w as usize, ids[1])]).await })
+        })
+        .collect();
+    let mut versions = Vec::new();
+    for (w, t) in tasks.into_iter().enumerate() {
+        match t.await.unwrap() {
+            Ok(a) => {
+                assert_eq!(a.ids, [100 + 2 * w as u64, 101 + 2 * w as u64]);
+                versions.push(a.version);
+            }
+            Err(e) => assert_eq!((w, e), (7, StoreError::FrameExists("yard".into(), 5))),
+        }
+    }
+    // Each batch answered with its own version (its last frame's seq): all different, and the
+    // log holds exactly the 1 + 23 x 2 frames, none of writer 7's.
+    versions.sort();
+    versions.dedup();
+    assert_eq!(versions.len(), 23);
+    let back = log.frames("yard", 0).await.unwrap();
+    assert_eq!(back.len(), 47);
+    assert_eq!(back.iter().map(|f| f.seq).collect::<Vec<_>>(), (1..=47).collect::<Vec<i64>>(), "no gaps");
+    assert!(!back.iter().any(|f| f.frame_id == 1000));
+    assert_eq!(log.version("yard").await.unwrap(), 47);
+    log.delete_session("yard").await.unwrap();
+    let e = log.append(&m, &[frame(0, None)]).await.unwrap_err();
+    assert_eq!(e, StoreError::SessionNotFound("yard".into()));
+}
