@@ -166,13 +166,20 @@ async fn delete_session(
     Ok(StatusCode::NO_CONTENT)
 }
 
+/// A stored frame as HTTP answers it (one frame, or each of a listing's).
 #[derive(Serialize)]
-struct FrameView {
+pub(super) struct FrameView {
     frame_id: u64,
     robot_id: String,
     timestamp: f64,
     pose: Option<Pose>,
     metadata: Option<serde_json::Value>,
+}
+
+impl FrameView {
+    pub(super) fn new(frame_id: u64, h: crate::store::record::FrameHeader) -> Self {
+        Self { frame_id, robot_id: h.robot_id, timestamp: h.timestamp, pose: h.pose, metadata: h.metadata }
+    }
 }
 
 async fn get_frame(
@@ -181,8 +188,7 @@ async fn get_frame(
     Path((id, frame_id)): Path<(String, String)>,
 ) -> Result<Json<FrameView>, ApiError> {
     let frame_id = parse_u64("frame_id", &frame_id)?;
-    let h = s.service.scoped(caller).frame(&id, frame_id)?;
-    Ok(Json(FrameView { frame_id, robot_id: h.robot_id, timestamp: h.timestamp, pose: h.pose, metadata: h.metadata }))
+    Ok(Json(FrameView::new(frame_id, s.service.scoped(caller).frame(&id, frame_id)?)))
 }
 
 /// A frame or query as sent: JSON body, multipart form (an `image` file plus fields), or a raw

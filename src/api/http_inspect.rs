@@ -1,10 +1,9 @@
 //! HTTP routes of the loop inspector: the page and its two assets (served without a key: they
 //! hold no data), a session's frames, a frame's thumbnail and the similarity matrix.
 use super::error::ApiError;
-use super::http::{parse_u64, AppState};
+use super::http::{parse_u64, AppState, FrameView};
 use crate::auth::Caller;
 use crate::inspect::similarity::Similarity;
-use crate::store::query::Pose;
 use axum::extract::rejection::QueryRejection;
 use axum::extract::{Path, Query, State};
 use axum::http::header;
@@ -66,17 +65,8 @@ pub struct FrameParams {
 }
 
 #[derive(Serialize)]
-pub struct FrameEntry {
-    frame_id: u64,
-    robot_id: String,
-    timestamp: f64,
-    pose: Option<Pose>,
-    metadata: Option<serde_json::Value>,
-}
-
-#[derive(Serialize)]
 pub struct FramePage {
-    frames: Vec<FrameEntry>,
+    frames: Vec<FrameView>,
     /// Where the next page starts (`after=`), or null on the last page.
     next: Option<u64>,
 }
@@ -89,17 +79,7 @@ pub async fn list_frames(
 ) -> Result<Json<FramePage>, ApiError> {
     let Query(p) = params.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
     let (frames, next) = s.service.scoped(caller).frames(&id, p.after, p.limit.unwrap_or(DEFAULT_FRAMES))?;
-    let frames = frames
-        .into_iter()
-        .map(|(frame_id, h)| FrameEntry {
-            frame_id,
-            robot_id: h.robot_id,
-            timestamp: h.timestamp,
-            pose: h.pose,
-            metadata: h.metadata,
-        })
-        .collect();
-    Ok(Json(FramePage { frames, next }))
+    Ok(Json(FramePage { frames: frames.into_iter().map(|(id, h)| FrameView::new(id, h)).collect(), next }))
 }
 
 pub async fn thumbnail(
