@@ -216,7 +216,7 @@ fn one_training_step_equals_the_pytorch_reference() {
     let r = Recipe { lr: 1e-3, clip_norm: 0.5, ..recipe(1, 0) };
     let (mut opt, params) = optimizer(&model, &r).unwrap();
     let loss = step(&model, &mut opt, &params, &x, &pos, &neg, &r, r.lr).unwrap();
-    assert!(loss > 0.0);
+    assert!(loss > 0.0, "loss {loss}");
     let mut expected = vec![("loss".to_string(), Tensor::from_slice(&[loss as f32]))];
     for (name, t) in model.var_store().variables() {
         if name.starts_with("attention.") || name.starts_with("fusion.") {

@@ -213,7 +213,7 @@ impl pb::loopd_server::Loopd for GrpcApi {
 
     async fn get_session(&self, req: Request<pb::GetSessionRequest>) -> Result<Response<pb::Session>, Status> {
         let caller = caller(&req)?;
-        Ok(Response::new(session_to_pb(self.service.scoped(caller).session(&req.into_inner().id)?)))
+        Ok(Response::new(session_to_pb(self.service.scoped(caller).session(&req.into_inner().id).await?)))
     }
 
     async fn list_sessions(
@@ -222,7 +222,7 @@ impl pb::loopd_server::Loopd for GrpcApi {
     ) -> Result<Response<pb::ListSessionsResponse>, Status> {
         let caller = caller(&req)?;
         Ok(Response::new(pb::ListSessionsResponse {
-            sessions: self.service.scoped(caller).list_sessions().into_iter().map(session_to_pb).collect(),
+            sessions: self.service.scoped(caller).list_sessions().await?.into_iter().map(session_to_pb).collect(),
         }))
     }
 
@@ -251,8 +251,15 @@ impl pb::loopd_server::Loopd for GrpcApi {
             None => return Err(Status::invalid_argument("a query needs an image, a descriptor or a frame_id")),
         };
         let opts = overrides(r.options)?;
-        let m = self.service.scoped(caller).query(&r.session_id, Some(r.robot_id), r.timestamp, target, &opts).await?;
-        Ok(Response::new(pb::QueryResponse { matches: matches_to_pb(m) }))
+        let scoped = self.service.scoped(caller);
+        let answer = scoped.query(&r.session_id, Some(r.robot_id), r.timestamp, target, &opts);
+        let (m, stale) = crate::store::tracking_staleness(answer).await;
+        let mut response = Response::new(pb::QueryResponse { matches: matches_to_pb(m?) });
+        if stale {
+            // The node's index answered without the log's version (no writable primary).
+            response.metadata_mut().insert("loopd-stale", tonic::metadata::MetadataValue::from_static("1"));
+        }
+        Ok(response)
     }
 
     async fn add_and_query(
@@ -267,7 +274,7 @@ impl pb::loopd_server::Loopd for GrpcApi {
 
     async fn list_loops(&self, req: Request<pb::ListLoopsRequest>) -> Result<Response<pb::ListLoopsResponse>, Status> {
         let caller = caller(&req)?;
-        Ok(Response::new(super::grpc_loops::list(&self.service, caller, req.into_inner())?))
+        Ok(Response::new(super::grpc_loops::list(&self.service, caller, req.into_inner()).await?))
     }
 
     async fn set_loop_verdict(&self, req: Request<pb::SetLoopVerdictRequest>) -> Result<Response<pb::Loop>, Status> {
@@ -278,7 +285,7 @@ impl pb::loopd_server::Loopd for GrpcApi {
     async fn get_thumbnail(&self, req: Request<pb::GetThumbnailRequest>) -> Result<Response<pb::Thumbnail>, Status> {
         let caller = caller(&req)?;
         let r = req.into_inner();
-        let jpeg = self.service.scoped(caller).thumbnail(&r.session_id, r.frame_id)?;
+        let jpeg = self.service.scoped(caller).thumbnail(&r.session_id, r.frame_id).await?;
         Ok(Response::new(pb::Thumbnail { jpeg: jpeg.into() }))
     }
 

@@ -39,7 +39,11 @@ pub fn loop_to_pb(l: LoopRecord) -> pb::Loop {
     }
 }
 
-pub fn list(service: &LoopService, caller: Caller, r: pb::ListLoopsRequest) -> Result<pb::ListLoopsResponse, ApiError> {
+pub async fn list(
+    service: &LoopService,
+    caller: Caller,
+    r: pb::ListLoopsRequest,
+) -> Result<pb::ListLoopsResponse, ApiError> {
     let filter = LoopFilter {
         robot: Some(r.robot_id).filter(|s| !s.is_empty()),
         min_score: r.min_score,
@@ -49,7 +53,7 @@ pub fn list(service: &LoopService, caller: Caller, r: pb::ListLoopsRequest) -> R
         after: Some(r.after).filter(|s| !s.is_empty()).as_deref().map(cursor).transpose()?,
         limit: if r.limit == 0 { 100 } else { r.limit as usize },
     };
-    let (loops, next) = service.scoped(caller).loops(&r.session_id, &filter)?;
+    let (loops, next) = service.scoped(caller).loops(&r.session_id, &filter).await?;
     Ok(pb::ListLoopsResponse {
         loops: loops.into_iter().map(loop_to_pb).collect(),
         next: next.map(|(q, m)| format!("{q}-{m}")).unwrap_or_default(),

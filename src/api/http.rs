@@ -56,7 +56,18 @@ pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
         .layer(DefaultBodyLimit::max(frame_body))
         .merge(sequences)
         .layer(axum::middleware::from_fn_with_state(state.clone(), authenticate))
+        .layer(axum::middleware::from_fn(mark_stale))
         .with_state(state)
+}
+
+/// `X-Loopd-Stale: 1` on an answer a cluster node gave from its own index while the log's
+/// version could not be read (no writable primary): it may lack the frames acknowledged last.
+async fn mark_stale(req: Request, next: axum::middleware::Next) -> axum::response::Response {
+    let (mut response, stale) = crate::store::tracking_staleness(next.run(req)).await;
+    if stale {
+        response.headers_mut().insert("x-loopd-stale", header::HeaderValue::from_static("1"));
+    }
+    response
 }
 
 /// 503 while writes cannot succeed (a storage failure not yet recovered): a balancer or an
@@ -145,8 +156,11 @@ struct SessionList {
     sessions: Vec<SessionInfo>,
 }
 
-async fn list_sessions(State(s): State<Arc<AppState>>, Extension(caller): Extension<Caller>) -> Json<SessionList> {
-    Json(SessionList { sessions: s.service.scoped(caller).list_sessions() })
+async fn list_sessions(
+    State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
+) -> Result<Json<SessionList>, ApiError> {
+    Ok(Json(SessionList { sessions: s.service.scoped(caller).list_sessions().await? }))
 }
 
 async fn get_session(
@@ -154,7 +168,7 @@ async fn get_session(
     Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<Json<SessionInfo>, ApiError> {
-    Ok(Json(s.service.scoped(caller).session(&id)?))
+    Ok(Json(s.service.scoped(caller).session(&id).await?))
 }
 
 async fn delete_session(
@@ -188,7 +202,7 @@ async fn get_frame(
     Path((id, frame_id)): Path<(String, String)>,
 ) -> Result<Json<FrameView>, ApiError> {
     let frame_id = parse_u64("frame_id", &frame_id)?;
-    Ok(Json(FrameView::new(frame_id, s.service.scoped(caller).frame(&id, frame_id)?)))
+    Ok(Json(FrameView::new(frame_id, s.service.scoped(caller).frame(&id, frame_id).await?)))
 }
 
 /// A frame or query as sent: JSON body, multipart form (an `image` file plus fields), or a raw
@@ -409,7 +423,7 @@ async fn start_sequence(
     req: Request,
 ) -> Result<(StatusCode, Json<JobCreated>), ApiError> {
     let scoped = s.service.scoped(caller);
-    scoped.session(&id)?;
+    scoped.session(&id).await?;
     let form = read_form(req, &["image", "archive", "bag"]).await?;
     let files = form.files.into_iter().map(|f| (f.part, f.file_name, f.data)).collect();
     // Unpacking a bag (decompression, raw pixels to PNG) is CPU work: off the async workers.

@@ -78,7 +78,7 @@ pub async fn list_frames(
     params: Result<Query<FrameParams>, QueryRejection>,
 ) -> Result<Json<FramePage>, ApiError> {
     let Query(p) = params.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
-    let (frames, next) = s.service.scoped(caller).frames(&id, p.after, p.limit.unwrap_or(DEFAULT_FRAMES))?;
+    let (frames, next) = s.service.scoped(caller).frames(&id, p.after, p.limit.unwrap_or(DEFAULT_FRAMES)).await?;
     Ok(Json(FramePage { frames: frames.into_iter().map(|(id, h)| FrameView::new(id, h)).collect(), next }))
 }
 
@@ -88,7 +88,7 @@ pub async fn thumbnail(
     Path((id, frame_id)): Path<(String, String)>,
 ) -> Result<impl IntoResponse, ApiError> {
     let frame_id = parse_u64("frame_id", &frame_id)?;
-    let jpeg = s.service.scoped(caller).thumbnail(&id, frame_id)?;
+    let jpeg = s.service.scoped(caller).thumbnail(&id, frame_id).await?;
     // A frame id names one picture for the session's life: a browser may keep it a while.
     Ok(([(header::CONTENT_TYPE, "image/jpeg"), (header::CACHE_CONTROL, "private, max-age=3600")], jpeg))
 }

@@ -54,7 +54,7 @@ pub async fn list_loops(
         after: p.after.as_deref().map(cursor).transpose()?,
         limit: p.limit.unwrap_or(DEFAULT_PAGE),
     };
-    let (loops, next) = s.service.scoped(caller).loops(&id, &filter)?;
+    let (loops, next) = s.service.scoped(caller).loops(&id, &filter).await?;
     Ok(Json(LoopPage { loops, next: next.map(|(q, m)| format!("{q}-{m}")) }))
 }
 
@@ -107,7 +107,7 @@ pub async fn export(
         loop_m: sigma("loop_sigma_m", p.loop_sigma_m, d.loop_m)?,
         loop_rad: sigma("loop_sigma_rad", p.loop_sigma_rad, d.loop_rad)?,
     };
-    let snapshot = s.service.scoped(caller).snapshot(&id)?;
+    let snapshot = s.service.scoped(caller).snapshot(&id).await?;
     // Building the tar walks every frame: off the request threads.
     let tar = tokio::task::spawn_blocking(move || crate::export::tar(&snapshot, noise))
         .await

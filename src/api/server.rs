@@ -10,6 +10,7 @@ use crate::engine::{Engine, EngineConfig};
 use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
 use crate::pb;
+use crate::store::pg::Replication;
 use crate::store::{SearchConfig, Store};
 use crate::verify::pool::VerifyConfig;
 use anyhow::{Context, Result};
@@ -50,6 +51,17 @@ pub struct ServerConfig {
     pub insecure: bool,
     /// TLS on both servers (certificate, key, optional client CA for mTLS).
     pub tls: Option<TlsFiles>,
+    /// Sessions and frames in a cluster's replicated log instead of `data_dir` alone.
+    pub cluster: Option<ClusterConfig>,
+}
+
+/// `serve --cluster`: the log's PostgreSQL URL and this node's connections to it.
+#[derive(Clone, Debug)]
+pub struct ClusterConfig {
+    pub url: String,
+    pub connections: usize,
+    /// Trials only: accept a primary whose commits do not wait for a synchronous standby.
+    pub unreplicated: bool,
 }
 
 /// What one client connection may hold (see `conn.rs`).
@@ -98,6 +110,7 @@ impl ServerConfig {
             auth: AuthConfig::default(),
             insecure: false,
             tls: None,
+            cluster: None,
         }
     }
 }
@@ -114,10 +127,18 @@ pub struct RunningServer {
 impl RunningServer {
     /// Binds both listeners (port 0 picks a free one) and starts serving.
     pub async fn start(cfg: ServerConfig, model: Model) -> Result<Self> {
-        let store = Arc::new(
-            Store::open_with(&cfg.data_dir, cfg.search)
+        let store = Arc::new(match &cfg.cluster {
+            None => Store::open_with(&cfg.data_dir, cfg.search)
                 .with_context(|| format!("opening store in {}", cfg.data_dir.display()))?,
-        );
+            Some(c) => {
+                let replication = if c.unreplicated { Replication::NotRequired } else { Replication::Synchronous };
+                let store = Store::open_cluster(&cfg.data_dir, &c.url, c.connections, replication, cfg.search)
+                    .await
+                    .with_context(|| format!("joining the cluster (its cache in {})", cfg.data_dir.display()))?;
+                tracing::info!(cache = %cfg.data_dir.display(), "sessions and frames in the cluster's log");
+                store
+            }
+        });
         let engine = Engine::start(model, cfg.engine.clone(), cfg.limits)?;
         let auth = Arc::new(Auth::new(&cfg.auth, store.clone())?);
         let tls = match &cfg.tls {

@@ -32,6 +32,14 @@ impl Scoped<'_> {
         Ok(self.caller.store_id(id))
     }
 
+    /// As [`Scoped::sid`], the session brought up to date first (in a cluster: loaded from the
+    /// log, every frame acknowledged through any node applied, gone if deleted elsewhere).
+    async fn fresh(&self, id: &str) -> Result<String, ApiError> {
+        let sid = self.sid(id)?;
+        self.service.store.fresh(&sid).await?;
+        Ok(sid)
+    }
+
     /// Limits checked before a write or query: the rate first, then stored frames (`adding`
     /// more), then the tenant's share of the queue (the slot is held until the guard drops).
     /// Checked per request: writes in flight at once may pass a frame limit by their number.
@@ -44,7 +52,8 @@ impl Scoped<'_> {
         };
         quota.take().map_err(|m| refuse(Refusal::Rate, m))?;
         if let (Some(max), true) = (quota.limits.max_frames, adding > 0) {
-            let held: usize = self.list_sessions().iter().map(|s| s.frames).sum();
+            // Sessions as this node holds them (in a cluster, those it has loaded).
+            let held: usize = self.held().iter().map(|s| s.frames).sum();
             if (held + adding) as u64 > max {
                 return Err(refuse(
                     Refusal::Frames,
@@ -67,7 +76,7 @@ impl Scoped<'_> {
 
     pub async fn create_session(&self, mut req: CreateSession) -> Result<SessionInfo, ApiError> {
         if let Some(max) = self.caller.quota().and_then(|q| q.limits.max_sessions) {
-            let held = self.list_sessions().len();
+            let held = self.list_sessions().await?.len();
             if held as u64 >= max {
                 if let Some(q) = self.caller.quota() {
                     q.refused(Refusal::Sessions);
@@ -92,12 +101,21 @@ impl Scoped<'_> {
         Ok(self.caller.view(self.service.create_session(req).await?))
     }
 
-    pub fn session(&self, id: &str) -> Result<SessionInfo, ApiError> {
-        Ok(self.caller.view(self.service.session(&self.sid(id)?)?))
+    pub async fn session(&self, id: &str) -> Result<SessionInfo, ApiError> {
+        Ok(self.caller.view(self.service.session(&self.fresh(id).await?)?))
     }
 
-    pub fn list_sessions(&self) -> Vec<SessionInfo> {
-        let all = self.service.list_sessions();
+    pub async fn list_sessions(&self) -> Result<Vec<SessionInfo>, ApiError> {
+        let all = self.service.store.list_fresh().await?;
+        Ok(self.own(all))
+    }
+
+    /// This tenant's sessions as this node holds them now, without asking a cluster's log.
+    fn held(&self) -> Vec<SessionInfo> {
+        self.own(self.service.list_sessions())
+    }
+
+    fn own(&self, all: Vec<SessionInfo>) -> Vec<SessionInfo> {
         all.into_iter().filter(|s| self.caller.own(&s.meta.id).is_some()).map(|s| self.caller.view(s)).collect()
     }
 
@@ -105,31 +123,31 @@ impl Scoped<'_> {
         self.service.delete_session(&self.sid(id)?).await
     }
 
-    pub fn frame(&self, session: &str, frame_id: u64) -> Result<FrameHeader, ApiError> {
-        self.service.frame(&self.sid(session)?, frame_id)
+    pub async fn frame(&self, session: &str, frame_id: u64) -> Result<FrameHeader, ApiError> {
+        self.service.frame(&self.fresh(session).await?, frame_id)
     }
 
-    pub fn frames(&self, session: &str, after: Option<u64>, limit: usize) -> Result<FramePage, ApiError> {
-        self.service.frames(&self.sid(session)?, after, limit)
+    pub async fn frames(&self, session: &str, after: Option<u64>, limit: usize) -> Result<FramePage, ApiError> {
+        self.service.frames(&self.fresh(session).await?, after, limit)
     }
 
-    pub fn thumbnail(&self, session: &str, frame_id: u64) -> Result<Vec<u8>, ApiError> {
-        self.service.thumbnail(&self.sid(session)?, frame_id)
+    pub async fn thumbnail(&self, session: &str, frame_id: u64) -> Result<Vec<u8>, ApiError> {
+        self.service.thumbnail(&self.fresh(session).await?, frame_id)
     }
 
     pub async fn similarity(&self, session: &str, size: usize) -> Result<Similarity, ApiError> {
-        let sid = self.sid(session)?;
+        let sid = self.fresh(session).await?;
         // A matrix costs size² dot products: it counts against the tenant's rate like a query.
         let _slot = self.admit(0)?;
         self.service.similarity(&sid, size).await
     }
 
-    pub fn loops(&self, session: &str, filter: &LoopFilter) -> Result<Page, ApiError> {
-        self.service.loops(&self.sid(session)?, filter)
+    pub async fn loops(&self, session: &str, filter: &LoopFilter) -> Result<Page, ApiError> {
+        self.service.loops(&self.fresh(session).await?, filter)
     }
 
-    pub fn snapshot(&self, session: &str) -> Result<crate::export::Snapshot, ApiError> {
-        self.service.snapshot(&self.sid(session)?)
+    pub async fn snapshot(&self, session: &str) -> Result<crate::export::Snapshot, ApiError> {
+        self.service.snapshot(&self.fresh(session).await?)
     }
 
     pub async fn set_verdict(
@@ -140,12 +158,12 @@ impl Scoped<'_> {
         relative_pose: Option<Transform>,
         covariance: Option<Vec<f64>>,
     ) -> Result<LoopRecord, ApiError> {
-        let sid = self.sid(session)?;
+        let sid = self.fresh(session).await?;
         self.service.set_verdict(&sid, query, matched, accepted, relative_pose, covariance).await
     }
 
     pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {
-        let sid = self.sid(session)?;
+        let sid = self.fresh(session).await?;
         let _slot = self.admit(1)?;
         let id = self.service.add_frame(&sid, f).await?;
         self.added(1);
@@ -160,7 +178,7 @@ impl Scoped<'_> {
         target: QueryTarget,
         options: &QueryOverrides,
     ) -> Result<Vec<LoopMatch>, ApiError> {
-        let sid = self.sid(session)?;
+        let sid = self.fresh(session).await?;
         let _slot = self.admit(0)?;
         self.service.query(&sid, robot_id, at_time, target, options).await
     }
@@ -171,7 +189,7 @@ impl Scoped<'_> {
         f: FrameInput,
         options: &QueryOverrides,
     ) -> Result<(u64, Vec<LoopMatch>), ApiError> {
-        let sid = self.sid(session)?;
+        let sid = self.fresh(session).await?;
         let _slot = self.admit(1)?;
         let answer = self.service.add_and_query(&sid, f, options).await?;
         self.added(1);
@@ -179,7 +197,7 @@ impl Scoped<'_> {
     }
 
     pub async fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
-        let sid = self.sid(session)?;
+        let sid = self.fresh(session).await?;
         // A job runs after this returns: the slot checks the share at submission only.
         drop(self.admit(seq.frames.len())?);
         self.service.start_sequence(&sid, seq).await

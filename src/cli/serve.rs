@@ -1,5 +1,5 @@
 use super::ModelArgs;
-use crate::api::server::{ConnectionConfig, RunningServer, ServerConfig};
+use crate::api::server::{ClusterConfig, ConnectionConfig, RunningServer, ServerConfig};
 use crate::api::tls::TlsFiles;
 use crate::auth::AuthConfig;
 use crate::engine::EngineConfig;
@@ -114,6 +114,18 @@ pub struct ServeArgs {
     /// Feature extractions and candidate checks running at once (default: number of cores).
     #[arg(long, env = "LOOPD_VERIFY_WORKERS")]
     pub verify_workers: Option<usize>,
+    /// Keep sessions and frames in a cluster's PostgreSQL log (synchronous replication), e.g.
+    /// postgres://loopd@h1,h2,h3/loopd?target_session_attrs=read-write; --data-dir is then this
+    /// node's cache, emptied at start.
+    #[arg(long, env = "LOOPD_CLUSTER")]
+    pub cluster: Option<String>,
+    /// Connections this node keeps to the cluster's database.
+    #[arg(long, env = "LOOPD_CLUSTER_CONNECTIONS", default_value_t = 16)]
+    pub cluster_connections: usize,
+    /// Trials only: accept a database whose commits do not wait for a synchronous standby (an
+    /// acknowledged frame may then be lost with the primary).
+    #[arg(long, env = "LOOPD_CLUSTER_UNREPLICATED", requires = "cluster")]
+    pub cluster_unreplicated: bool,
 }
 
 impl ServeArgs {
@@ -183,6 +195,11 @@ impl ServeArgs {
                 }
                 _ => None,
             },
+            cluster: self.cluster.as_ref().map(|url| ClusterConfig {
+                url: url.clone(),
+                connections: self.cluster_connections.clamp(1, 1024),
+                unreplicated: self.cluster_unreplicated,
+            }),
             connections: ConnectionConfig {
                 header_timeout: Duration::from_secs_f64(self.header_timeout_secs.clamp(0.1, 3600.0)),
                 idle_timeout: Duration::from_secs_f64(self.idle_timeout_secs.clamp(0.1, 86400.0)),

@@ -1,4 +1,5 @@
 //! Map sessions on disk (sled) with an in-memory exact search index per session.
+mod cluster;
 pub mod device;
 pub mod disk;
 pub mod durability;
@@ -11,6 +12,7 @@ pub mod record;
 mod records;
 mod reopen;
 
+pub use cluster::tracking_staleness;
 use disk::{Disk, Health};
 use index::SessionIndex;
 use parking_lot::{MappedRwLockReadGuard, Mutex, RwLock, RwLockReadGuard};
@@ -115,6 +117,10 @@ pub struct Session {
     index: RwLock<SessionIndex>,
     next_id: AtomicU64,
     bytes: AtomicU64,
+    /// In a cluster: the session's table in the log (0 with sled) and the last `seq` applied
+    /// here; the lock orders the applies.
+    tbl: i64,
+    applied: tokio::sync::Mutex<i64>,
 }
 
 pub struct Store {
@@ -129,6 +135,9 @@ pub struct Store {
     /// Searches running at once on blocking threads (never on the async executor).
     search_slots: Arc<Semaphore>,
     search: SearchConfig,
+    /// `serve --cluster`: sessions and frames live in the replicated log; the sled folder is
+    /// this node's cache of them (`cluster.rs`).
+    cluster: Option<cluster::Cluster>,
 }
 
 /// A write whose flush failed: not stored, and the store refuses writes until it recovers.
@@ -221,12 +230,27 @@ impl Store {
 
     /// As [`Store::open`], with searches where `search` says.
     pub fn open_with(dir: &Path, search: SearchConfig) -> Result<Self, StoreError> {
+        Self::open_dir(dir, search, None)
+    }
+
+    /// Opens the folder; with a cluster log, the sessions cached there from an earlier run are
+    /// dropped (the log is the authority) and loaded again from it on first use.
+    fn open_dir(dir: &Path, search: SearchConfig, cluster: Option<cluster::Cluster>) -> Result<Self, StoreError> {
         std::fs::create_dir_all(dir).map_err(|e| StoreError::Storage(format!("{}: {e}", dir.display())))?;
         let health = Arc::new(Health::default());
         let disk = Disk::open(dir, health.clone())?;
         let t = Instant::now();
         let mut sessions = HashMap::new();
         let mut frames = 0;
+        if cluster.is_some() {
+            for key in disk.sessions.iter().keys() {
+                let key = key?;
+                for tree in trees_of(&String::from_utf8_lossy(&key)) {
+                    disk.db.drop_tree(tree)?;
+                }
+                disk.sessions.remove(key)?;
+            }
+        }
         for entry in disk.sessions.iter() {
             let (_, v) = entry?;
             let meta: SessionMeta = serde_json::from_slice(&v).map_err(|e| StoreError::Storage(e.to_string()))?;
@@ -253,50 +277,27 @@ impl Store {
             search_threads: cores(),
             search_slots: Arc::new(Semaphore::new(search.max_concurrent.max(1))),
             search,
+            cluster,
         })
     }
 
     /// Creates a session; `id` None: the store picks one.
     pub async fn create_session(&self, id: Option<String>, new: NewSession) -> Result<SessionMeta, StoreError> {
-        let NewSession { name, dim, descriptor_id, storage, default_query, camera, thumbnails } = new;
-        if !(1..=65536).contains(&dim) {
-            return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
-        }
+        let meta = new_meta(id, new)?;
         self.health.writable()?;
-        let meta = {
+        if let Some(c) = &self.cluster {
+            return self.create_in_cluster(c, meta).await;
+        }
+        {
             let _admin = self.admin.lock();
             let disk = self.disk()?;
-            let id = id.unwrap_or_else(|| {
-                let nanos =
-                    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos();
-                format!("s{nanos:x}")
-            });
-            if !valid_session_id(&id) {
-                return Err(StoreError::InvalidArgument(format!(
-                    "session id '{id}' must be 1-64 characters of letters, digits, '-', '_' or '.', with a letter or digit"
-                )));
+            if self.sessions.read().contains_key(&meta.id) {
+                return Err(StoreError::SessionExists(meta.id));
             }
-            if self.sessions.read().contains_key(&id) {
-                return Err(StoreError::SessionExists(id));
-            }
-            let created =
-                std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64();
-            let meta = SessionMeta {
-                id: id.clone(),
-                name,
-                created,
-                dim,
-                descriptor_id,
-                storage,
-                default_query,
-                camera,
-                thumbnails,
-            };
             let session = Session::load(&disk.db, meta.clone(), self.search)?;
-            self.note(disk.sessions.insert(id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises")))?;
-            self.sessions.write().insert(id, Arc::new(session));
-            meta
-        };
+            self.note(disk.sessions.insert(meta.id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises")))?;
+            self.sessions.write().insert(meta.id.clone(), Arc::new(session));
+        }
         if let Err(e) = self.durable().await {
             // Not acknowledged: the session goes (a reopen also drops it from disk if it is there).
             self.sessions.write().remove(&meta.id);
@@ -321,21 +322,34 @@ impl Store {
     /// Deletes the session and its frames from disk and memory.
     pub async fn delete_session(&self, id: &str) -> Result<(), StoreError> {
         self.health.writable()?;
-        {
-            let _admin = self.admin.lock();
-            let disk = self.disk()?;
-            let removed = self.sessions.write().remove(id);
-            let Some(removed) = removed else {
-                return Err(StoreError::SessionNotFound(id.into()));
-            };
-            // Its handles go first: sled drops a tree's contents once no handle holds it.
-            removed.trees.write().take();
-            self.note(disk.sessions.remove(id.as_bytes()))?;
-            for tree in trees_of(id) {
-                self.note(disk.db.drop_tree(tree))?;
-            }
+        if let Some(c) = &self.cluster {
+            return self.delete_in_cluster(c, id).await;
+        }
+        if !self.remove_local(id)? {
+            return Err(StoreError::SessionNotFound(id.into()));
         }
         self.durable().await
+    }
+
+    /// Takes the session out of memory and drops its trees (not yet durable); false: there was
+    /// none.
+    fn remove_local(&self, id: &str) -> Result<bool, StoreError> {
+        let _admin = self.admin.lock();
+        self.remove_locked(id)
+    }
+
+    /// As [`Store::remove_local`], the admin lock held by the caller.
+    fn remove_locked(&self, id: &str) -> Result<bool, StoreError> {
+        let disk = self.disk()?;
+        let removed = self.sessions.write().remove(id);
+        let Some(removed) = removed else { return Ok(false) };
+        // Its handles go first: sled drops a tree's contents once no handle holds it.
+        removed.trees.write().take();
+        self.note(disk.sessions.remove(id.as_bytes()))?;
+        for tree in trees_of(id) {
+            self.note(disk.db.drop_tree(tree))?;
+        }
+        Ok(true)
     }
 
     /// Adds frames; acknowledged (returns their ids) once they are on disk. A frame becomes
@@ -359,6 +373,9 @@ impl Store {
             check_new_frame(s, &f)?;
             normalize(&mut f.descriptor)?;
             prepared.push(f);
+        }
+        if let Some(c) = &self.cluster {
+            return self.add_in_cluster(c, s, prepared, loops).await;
         }
         let written = self.note(Self::write_frames(s, &prepared));
         let (written, added_bytes) = written?;
@@ -398,13 +415,7 @@ impl Store {
         let mut written = Vec::with_capacity(prepared.len());
         let mut added_bytes = 0u64;
         for f in prepared {
-            let header = FrameHeader {
-                robot_id: f.robot_id.clone(),
-                timestamp: f.timestamp,
-                pose: f.pose,
-                metadata: f.metadata.clone(),
-            };
-            let value = encode_frame(&header, &f.descriptor, s.meta.storage);
+            let value = encode_frame(&f.header(), &f.descriptor, s.meta.storage);
             let id = match f.frame_id {
                 Some(id) => {
                     if !insert_new(&trees.frames, id, &value)? {
@@ -491,6 +502,44 @@ impl Store {
     pub fn flush(&self) -> Result<(), StoreError> {
         self.disk()?.db.flush()?;
         Ok(())
+    }
+}
+
+/// A new session's metadata, its id checked (or picked: `s` and the time in hex).
+fn new_meta(id: Option<String>, new: NewSession) -> Result<SessionMeta, StoreError> {
+    let NewSession { name, dim, descriptor_id, storage, default_query, camera, thumbnails } = new;
+    if !(1..=65536).contains(&dim) {
+        return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
+    }
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+    let id = id.unwrap_or_else(|| format!("s{:x}", now.as_nanos()));
+    if !valid_session_id(&id) {
+        return Err(StoreError::InvalidArgument(format!(
+            "session id '{id}' must be 1-64 characters of letters, digits, '-', '_' or '.', with a letter or digit"
+        )));
+    }
+    Ok(SessionMeta {
+        id,
+        name,
+        created: now.as_secs_f64(),
+        dim,
+        descriptor_id,
+        storage,
+        default_query,
+        camera,
+        thumbnails,
+    })
+}
+
+impl NewFrame {
+    /// What the frame record holds beside the descriptor.
+    fn header(&self) -> FrameHeader {
+        FrameHeader {
+            robot_id: self.robot_id.clone(),
+            timestamp: self.timestamp,
+            pose: self.pose,
+            metadata: self.metadata.clone(),
+        }
     }
 }
 
@@ -640,6 +689,8 @@ impl Session {
             index: RwLock::new(index),
             next_id: AtomicU64::new(next),
             bytes: AtomicU64::new(bytes),
+            tbl: 0,
+            applied: tokio::sync::Mutex::new(0),
         })
     }
 

@@ -1,12 +1,13 @@
-//! The durable frame log on PostgreSQL with synchronous replication (issue #17, first step): the
-//! cluster's copy of every session and frame, beside which loopd nodes keep their in-memory exact
-//! indexes (`SessionIndex`), rebuilt from it. Not yet behind `loopd serve --cluster`: the seam in
-//! `Store`, membership, forwarding and the failover suite are still to come (docs/cluster.md).
+//! The durable frame log on PostgreSQL with synchronous replication (issue #17): the cluster's
+//! copy of every session and frame, beside which loopd nodes keep their in-memory exact indexes
+//! (`SessionIndex`), rebuilt from it. `serve --cluster` uses it through `cluster.rs`; membership,
+//! the balancer and the failover suite are still to come (docs/cluster.md).
 //!
 //! Schema: `loopd_sessions(id, tbl, meta, version, next_frame_id)` and one table per session,
-//! `loopd_frames_<tbl>(frame_id, seq, write_id, record)`, so deleting a session is a DROP TABLE as it
-//! is a dropped tree in sled. `record` is the sled frame record (`record.rs`: header JSON and the
-//! descriptor in the session's storage). A batch is one transaction under the session row's lock:
+//! `loopd_frames_<tbl>(frame_id, seq, write_id, record, features, thumb)`, so deleting a session
+//! is a DROP TABLE as it is a dropped tree in sled. `record` is the sled frame record
+//! (`record.rs`: header JSON and the descriptor in the session's storage); features and the
+//! thumbnail are the opaque bytes sled keeps beside it. A batch is one transaction under the session row's lock:
 //! `seq` follows commit order per session, and `version` is the highest `seq` committed, so a
 //! node that has applied every `seq <= v` holds every frame acknowledged up to `v`.
 //!
@@ -48,6 +49,17 @@ pub struct LoggedFrame {
     pub frame_id: u64,
     pub header: FrameHeader,
     pub descriptor: Vec<f32>,
+    pub features: Option<Vec<u8>>,
+    pub thumbnail: Option<Vec<u8>>,
+}
+
+/// A session as the log holds it now: its metadata, its table (an identity never reused, so a
+/// session deleted and created again under the same id is told apart) and its version.
+#[derive(Clone, Debug)]
+pub struct Head {
+    pub meta: SessionMeta,
+    pub tbl: i64,
+    pub version: i64,
 }
 
 const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS loopd_sessions (
@@ -89,8 +101,12 @@ impl PgLog {
     /// Connects (a multi-host URL with `target_session_attrs=read-write` finds the primary),
     /// creates the schema if missing and checks that commits wait for a synchronous standby.
     pub async fn connect(url: &str, max_connections: usize, replication: Replication) -> Result<Self, StoreError> {
-        let config: tokio_postgres::Config =
+        let mut config: tokio_postgres::Config =
             url.parse().map_err(|e| StoreError::InvalidArgument(format!("cluster URL: {e}")))?;
+        // A host that does not answer (cut off, not refusing) must not hold a request for long.
+        if config.get_connect_timeout().is_none() {
+            config.connect_timeout(std::time::Duration::from_secs(5));
+        }
         let manager = Manager::from_config(config, NoTls, ManagerConfig { recycling_method: RecyclingMethod::Fast });
         let pool = Pool::builder(manager)
             .max_size(max_connections.max(1))
@@ -117,8 +133,8 @@ impl PgLog {
         self.pool.get().await.map_err(pool_error)
     }
 
-    /// Creates a session and its frames table, in one transaction.
-    pub async fn create_session(&self, meta: &SessionMeta) -> Result<(), StoreError> {
+    /// Creates a session and its frames table, in one transaction; returns its table's number.
+    pub async fn create_session(&self, meta: &SessionMeta) -> Result<i64, StoreError> {
         let json = serde_json::to_value(meta).map_err(|e| StoreError::Storage(e.to_string()))?;
         let mut client = self.client().await?;
         let tx = client.transaction().await.map_err(pg_error)?;
@@ -126,33 +142,36 @@ impl PgLog {
         let Some(row) = tx.query_opt(sql, &[&meta.id, &json]).await.map_err(pg_error)? else {
             return Err(StoreError::SessionExists(meta.id.clone()));
         };
-        let table = frames_table(row.get(0));
+        let tbl: i64 = row.get(0);
+        let table = frames_table(tbl);
         // Descriptors are incompressible: EXTERNAL keeps them out of line without trying.
         let ddl = format!(
             "CREATE TABLE {table} (frame_id bigint PRIMARY KEY, seq bigint NOT NULL UNIQUE, \
-             write_id bigint NOT NULL, record bytea NOT NULL); \
+             write_id bigint NOT NULL, record bytea NOT NULL, features bytea, thumb bytea); \
              ALTER TABLE {table} ALTER COLUMN record SET STORAGE EXTERNAL"
         );
         tx.batch_execute(&ddl).await.map_err(pg_error)?;
-        tx.commit().await.map_err(pg_error)
+        tx.commit().await.map_err(pg_error)?;
+        Ok(tbl)
     }
 
     /// Every session's metadata and version.
     pub async fn sessions(&self) -> Result<Vec<(SessionMeta, i64)>, StoreError> {
-        let rows = self
-            .client()
-            .await?
-            .query("SELECT meta, version FROM loopd_sessions ORDER BY id", &[])
-            .await
-            .map_err(pg_error)?;
-        rows.iter()
-            .map(|r| {
-                let meta: serde_json::Value = r.get(0);
-                let meta =
-                    serde_json::from_value(meta).map_err(|e| StoreError::Storage(format!("session meta: {e}")))?;
-                Ok((meta, r.get(1)))
-            })
-            .collect()
+        Ok(self.heads().await?.into_iter().map(|h| (h.meta, h.version)).collect())
+    }
+
+    /// Every session as the log holds it now.
+    pub async fn heads(&self) -> Result<Vec<Head>, StoreError> {
+        let sql = "SELECT meta, tbl, version FROM loopd_sessions ORDER BY id";
+        let rows = self.client().await?.query(sql, &[]).await.map_err(pg_error)?;
+        rows.iter().map(head).collect()
+    }
+
+    /// One session as the log holds it now (one round trip).
+    pub async fn head(&self, session: &str) -> Result<Head, StoreError> {
+        let sql = "SELECT meta, tbl, version FROM loopd_sessions WHERE id = $1";
+        let row = self.client().await?.query_opt(sql, &[&session]).await.map_err(pg_error)?;
+        head(&row.ok_or_else(|| StoreError::SessionNotFound(session.into()))?)
     }
 
     /// The session's version: the `seq` of its last committed frame (0: none).
@@ -203,19 +222,44 @@ impl PgLog {
     /// The session's frames with `seq > after`, in `seq` order: a cold load (after 0) or the tail
     /// a node has not applied yet.
     pub async fn frames(&self, session: &str, after: i64) -> Result<Vec<LoggedFrame>, StoreError> {
+        let tbl = self.head(session).await?.tbl;
+        self.tail(session, tbl, after).await
+    }
+
+    /// As [`PgLog::frames`], from the session's table `tbl` (SessionNotFound once it is dropped).
+    pub async fn tail(&self, session: &str, tbl: i64, after: i64) -> Result<Vec<LoggedFrame>, StoreError> {
         let client = self.client().await?;
-        let row = client.query_opt("SELECT tbl FROM loopd_sessions WHERE id = $1", &[&session]).await;
-        let tbl: i64 = row.map_err(pg_error)?.ok_or_else(|| StoreError::SessionNotFound(session.into()))?.get(0);
-        let sql = format!("SELECT seq, frame_id, record FROM {} WHERE seq > $1 ORDER BY seq", frames_table(tbl));
-        let rows = client.query(&sql, &[&after]).await.map_err(pg_error)?;
+        let sql = format!(
+            "SELECT seq, frame_id, record, features, thumb FROM {} WHERE seq > $1 ORDER BY seq",
+            frames_table(tbl)
+        );
+        let rows = match client.query(&sql, &[&after]).await {
+            Err(e) if e.code() == Some(&SqlState::UNDEFINED_TABLE) => {
+                return Err(StoreError::SessionNotFound(session.into()))
+            }
+            rows => rows.map_err(pg_error)?,
+        };
         rows.iter()
             .map(|r| {
                 let (seq, frame_id, record): (i64, i64, Vec<u8>) = (r.get(0), r.get(1), r.get(2));
                 let (header, descriptor) = decode_frame(&record).map_err(StoreError::Storage)?;
-                Ok(LoggedFrame { seq, frame_id: frame_id as u64, header, descriptor })
+                Ok(LoggedFrame {
+                    seq,
+                    frame_id: frame_id as u64,
+                    header,
+                    descriptor,
+                    features: r.get(3),
+                    thumbnail: r.get(4),
+                })
             })
             .collect()
     }
+}
+
+fn head(r: &tokio_postgres::Row) -> Result<Head, StoreError> {
+    let meta: serde_json::Value = r.get(0);
+    let meta = serde_json::from_value(meta).map_err(|e| StoreError::Storage(format!("session meta: {e}")))?;
+    Ok(Head { meta, tbl: r.get(1), version: r.get(2) })
 }
 
 /// One `append` call waiting for its group's commit.
@@ -273,7 +317,10 @@ async fn commit_group(
         .map_err(pg_error)?
         .ok_or_else(|| StoreError::SessionNotFound(session.into()))?;
     let (tbl, mut version, mut next): (i64, i64, i64) = (row.get(0), row.get(1), row.get(2));
-    let sql = format!("INSERT INTO {} (frame_id, seq, write_id, record) VALUES ($1, $2, $3, $4)", frames_table(tbl));
+    let sql = format!(
+        "INSERT INTO {} (frame_id, seq, write_id, record, features, thumb) VALUES ($1, $2, $3, $4, $5, $6)",
+        frames_table(tbl)
+    );
     let insert = tx.prepare(&sql).await.map_err(pg_error)?;
     let write_id: i64 = rand::random();
     let mut answers = Vec::with_capacity(group.len());
@@ -296,14 +343,18 @@ async fn commit_group(
                 pose: f.pose,
                 metadata: f.metadata.clone(),
             };
-            rows.push((id, version, encode_frame(&header, &f.descriptor, r.storage)));
+            rows.push((id, version, encode_frame(&header, &f.descriptor, r.storage), f));
         }
         let mut ids = Vec::with_capacity(rows.len());
         if refused.is_none() {
-            let params: Vec<[&(dyn ToSql + Sync); 4]> =
-                rows.iter().map(|(id, seq, record)| [id as &(dyn ToSql + Sync), seq, &write_id, record]).collect();
+            let params: Vec<[&(dyn ToSql + Sync); 6]> = rows
+                .iter()
+                .map(|(id, seq, record, f)| {
+                    [id as &(dyn ToSql + Sync), seq, &write_id, record, &f.features, &f.thumbnail]
+                })
+                .collect();
             let inserts = params.iter().map(|p| tx.execute(&insert, p));
-            for (result, (id, _, _)) in futures::future::join_all(inserts).await.into_iter().zip(&rows) {
+            for (result, (id, _, _, _)) in futures::future::join_all(inserts).await.into_iter().zip(&rows) {
                 match result {
                     Ok(_) => ids.push(*id as u64),
                     Err(e) if e.code() == Some(&SqlState::UNIQUE_VIOLATION) => {

@@ -1,0 +1,239 @@
+//! `loopd serve --cluster`: sessions and frames live in the replicated PostgreSQL log (`pg.rs`),
+//! and this node's sled folder is only its cache of them (dropped at start-up). Any node takes
+//! any request: a session is loaded from the log on first use, and brought up to the log's
+//! version before each use, so a request through one node sees every frame acknowledged through
+//! any other before it arrived (read-after-ack, one round trip, no push between nodes). A frame is
+//! acknowledged once its commit reached a synchronous standby, then applied here.
+//!
+//! Kept loops, verdicts, jobs and tenants stay node-local in this step (docs/cluster.md).
+use super::loops::LoopRecord;
+use super::pg::{Appended, Head, PgLog, Replication};
+use super::record::{encode_frame, frame_key, FrameHeader, SessionMeta};
+use super::{NewFrame, SearchConfig, Session, SessionInfo, Store, StoreError};
+use std::path::Path;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::Arc;
+
+pub(super) struct Cluster {
+    log: PgLog,
+}
+
+tokio::task_local! {
+    /// Set when a request was answered from this node's index without confirming the log's
+    /// version (see [`tracking_staleness`]).
+    static STALE: std::cell::Cell<bool>;
+}
+
+/// Runs a request's future and says whether any session it used could not be brought up to the
+/// log's version (no writable primary): the APIs flag such answers as stale.
+pub async fn tracking_staleness<F: std::future::Future>(request: F) -> (F::Output, bool) {
+    let stale = std::cell::Cell::new(false);
+    STALE
+        .scope(stale, async move {
+            let out = request.await;
+            (out, STALE.with(|s| s.get()))
+        })
+        .await
+}
+
+impl Store {
+    /// Opens `dir` as this node's cache and connects to the cluster's log (`url`: a multi-host
+    /// PostgreSQL URL with `target_session_attrs=read-write`), refusing a primary whose commits
+    /// do not wait for a synchronous standby unless `replication` says otherwise.
+    pub async fn open_cluster(
+        dir: &Path,
+        url: &str,
+        connections: usize,
+        replication: Replication,
+        search: SearchConfig,
+    ) -> Result<Self, StoreError> {
+        let log = PgLog::connect(url, connections, replication).await?;
+        let dir = dir.to_path_buf();
+        // sled opens and drops its cache with blocking I/O.
+        tokio::task::spawn_blocking(move || Self::open_dir(&dir, search, Some(Cluster { log })))
+            .await
+            .map_err(|e| StoreError::Storage(format!("opening the cache failed: {e}")))?
+    }
+
+    /// Whether sessions live in a cluster log (`serve --cluster`).
+    pub fn clustered(&self) -> bool {
+        self.cluster.is_some()
+    }
+
+    /// The session as of now. In a cluster: loaded on first use, brought up to the log's version
+    /// (read-after-ack across nodes), and forgotten here once deleted through another node.
+    pub async fn fresh(&self, id: &str) -> Result<Arc<Session>, StoreError> {
+        let Some(c) = &self.cluster else { return self.session(id) };
+        let head = match c.log.head(id).await {
+            Err(StoreError::SessionNotFound(_)) => {
+                self.remove_local(id)?;
+                return Err(StoreError::SessionNotFound(id.into()));
+            }
+            // No writable primary: answer from what this node holds (it may lack the frames
+            // acknowledged last); writes fail on their own.
+            Err(StoreError::Unavailable(why)) => {
+                let held = self.session(id).map_err(|_| StoreError::Unavailable(why.clone()))?;
+                tracing::warn!(session = id, error = %why, "cluster log unavailable: answering from this node's index");
+                let _ = STALE.try_with(|s| s.set(true));
+                return Ok(held);
+            }
+            head => head?,
+        };
+        let version = head.version;
+        let s = self.cached(head)?;
+        self.catch_up(c, &s, version).await?;
+        Ok(s)
+    }
+
+    /// Every session as of now (see [`Store::fresh`]); with sled, [`Store::list`].
+    pub async fn list_fresh(&self) -> Result<Vec<SessionInfo>, StoreError> {
+        let Some(c) = &self.cluster else { return Ok(self.list()) };
+        let heads = c.log.heads().await?;
+        let gone: Vec<String> = {
+            let held = self.sessions.read();
+            held.keys().filter(|id| !heads.iter().any(|h| &h.meta.id == *id)).cloned().collect()
+        };
+        for id in gone {
+            self.remove_local(&id)?;
+        }
+        for head in heads {
+            let version = head.version;
+            let s = self.cached(head)?;
+            match self.catch_up(c, &s, version).await {
+                // Deleted since the listing was read.
+                Err(StoreError::SessionNotFound(_)) => {}
+                r => r?,
+            }
+        }
+        Ok(self.list())
+    }
+
+    pub(super) async fn create_in_cluster(&self, c: &Cluster, meta: SessionMeta) -> Result<SessionMeta, StoreError> {
+        let tbl = c.log.create_session(&meta).await?;
+        self.cached(Head { meta: meta.clone(), tbl, version: 0 })?;
+        Ok(meta)
+    }
+
+    pub(super) async fn delete_in_cluster(&self, c: &Cluster, id: &str) -> Result<(), StoreError> {
+        let deleted = c.log.delete_session(id).await;
+        if matches!(deleted, Ok(()) | Err(StoreError::SessionNotFound(_))) {
+            self.remove_local(id)?;
+        }
+        deleted
+    }
+
+    /// Appends to the log (acknowledged once on a synchronous standby), then applies here. The
+    /// loops answered for the frames are kept on this node only.
+    pub(super) async fn add_in_cluster(
+        &self,
+        c: &Cluster,
+        s: &Arc<Session>,
+        frames: Vec<NewFrame>,
+        loops: impl FnOnce(&[u64]) -> Vec<LoopRecord>,
+    ) -> Result<Vec<u64>, StoreError> {
+        let appended = c.log.append(&s.meta, &frames).await?;
+        // Acknowledged from here on: a failure below leaves the frames to the next catch-up.
+        if let Err(e) = self.apply_own(c, s, &frames, &appended).await {
+            tracing::warn!(session = %s.meta.id, error = %e, "frames stored in the cluster, not yet applied here");
+        }
+        if let Err(e) = self.note(s.write_loops(&loops(&appended.ids))) {
+            tracing::warn!(session = %s.meta.id, error = %e, "loop candidates answered but not kept");
+        }
+        Ok(appended.ids)
+    }
+
+    /// Applies a batch this node appended: from memory when it follows what is applied here,
+    /// else by reading the log's tail (which holds it).
+    async fn apply_own(
+        &self,
+        c: &Cluster,
+        s: &Arc<Session>,
+        frames: &[NewFrame],
+        appended: &Appended,
+    ) -> Result<(), StoreError> {
+        let mut applied = s.applied.lock().await;
+        let first = appended.version - frames.len() as i64;
+        if *applied == first {
+            for (f, &id) in frames.iter().zip(&appended.ids) {
+                let (features, thumbnail) = (f.features.as_deref(), f.thumbnail.as_deref());
+                self.note(s.apply(id, &f.header(), &f.descriptor, features, thumbnail))?;
+            }
+            *applied = appended.version;
+            return Ok(());
+        }
+        drop(applied);
+        self.catch_up(c, s, appended.version).await
+    }
+
+    /// Applies the log's frames after what this node holds, in `seq` order, until `version`.
+    async fn catch_up(&self, c: &Cluster, s: &Arc<Session>, version: i64) -> Result<(), StoreError> {
+        let mut applied = s.applied.lock().await;
+        if *applied >= version {
+            return Ok(());
+        }
+        let frames = match c.log.tail(&s.meta.id, s.tbl, *applied).await {
+            Err(StoreError::SessionNotFound(id)) => {
+                drop(applied);
+                self.remove_local(&id)?;
+                return Err(StoreError::SessionNotFound(id));
+            }
+            frames => frames?,
+        };
+        for f in frames {
+            let (features, thumbnail) = (f.features.as_deref(), f.thumbnail.as_deref());
+            self.note(s.apply(f.frame_id, &f.header, &f.descriptor, features, thumbnail))?;
+            *applied = f.seq;
+        }
+        Ok(())
+    }
+
+    /// The session held here for the log's `head`: the one already cached, or a new, empty one
+    /// in place of a stale one (deleted and created again through another node).
+    fn cached(&self, head: Head) -> Result<Arc<Session>, StoreError> {
+        let current = |store: &Self| store.sessions.read().get(&head.meta.id).filter(|s| s.tbl == head.tbl).cloned();
+        if let Some(s) = current(self) {
+            return Ok(s);
+        }
+        let _admin = self.admin.lock();
+        // Another request may have loaded it meanwhile.
+        if let Some(s) = current(self) {
+            return Ok(s);
+        }
+        self.remove_locked(&head.meta.id)?;
+        let disk = self.disk()?;
+        let mut session = Session::load(&disk.db, head.meta.clone(), self.search)?;
+        session.tbl = head.tbl;
+        let meta = serde_json::to_vec(&head.meta).map_err(|e| StoreError::Storage(e.to_string()))?;
+        self.note(disk.sessions.insert(head.meta.id.as_bytes(), meta))?;
+        let s = Arc::new(session);
+        self.sessions.write().insert(head.meta.id.clone(), s.clone());
+        Ok(s)
+    }
+}
+
+impl Session {
+    /// Puts a frame from the log into this node's cache and index (not flushed: the log is the
+    /// durable copy).
+    fn apply(
+        &self,
+        id: u64,
+        header: &FrameHeader,
+        descriptor: &[f32],
+        features: Option<&[u8]>,
+        thumbnail: Option<&[u8]>,
+    ) -> Result<(), StoreError> {
+        let trees = self.trees()?;
+        let value = encode_frame(header, descriptor, self.meta.storage);
+        trees.frames.insert(frame_key(id), value.as_slice())?;
+        if let Some(features) = features {
+            trees.features.insert(frame_key(id), features)?;
+        }
+        if let Some(thumbnail) = thumbnail {
+            trees.thumbs.insert(frame_key(id), thumbnail)?;
+        }
+        self.index.write().push(id, &header.robot_id, header.timestamp, header.pose, descriptor);
+        self.next_id.fetch_max(id.saturating_add(1), Relaxed);
+        self.bytes.fetch_add((8 + value.len()) as u64, Relaxed);
+        Ok(())
+    }
+}
