@@ -80,7 +80,7 @@ impl Store {
             head => head?,
         };
         let version = head.version;
-        let s = self.cached(head)?;
+        let s = self.cached(c, head)?;
         self.catch_up(c, &s, version).await?;
         Ok(s)
     }
@@ -98,7 +98,7 @@ impl Store {
         }
         for head in heads {
             let version = head.version;
-            let s = self.cached(head)?;
+            let s = self.cached(c, head)?;
             match self.catch_up(c, &s, version).await {
                 // Deleted since the listing was read.
                 Err(StoreError::SessionNotFound(_)) => {}
@@ -110,7 +110,7 @@ impl Store {
 
     pub(super) async fn create_in_cluster(&self, c: &Cluster, meta: SessionMeta) -> Result<SessionMeta, StoreError> {
         let tbl = c.log.create_session(&meta).await?;
-        self.cached(Head { meta: meta.clone(), tbl, version: 0 })?;
+        self.cached(c, Head { meta: meta.clone(), tbl, version: 0 })?;
         Ok(meta)
     }
 
@@ -188,9 +188,14 @@ impl Store {
     }
 
     /// The session held here for the log's `head`: the one already cached, or a new, empty one
-    /// in place of a stale one (deleted and created again through another node).
-    fn cached(&self, head: Head) -> Result<Arc<Session>, StoreError> {
-        let current = |store: &Self| store.sessions.read().get(&head.meta.id).filter(|s| s.tbl == head.tbl).cloned();
+    /// in place of a stale one (deleted and created again through another node, or read from a
+    /// primary that has since been replaced: it may hold frames the new one lacks).
+    fn cached(&self, c: &Cluster, head: Head) -> Result<Arc<Session>, StoreError> {
+        let epoch = c.log.epoch();
+        let current = |store: &Self| {
+            let held = store.sessions.read().get(&head.meta.id).cloned();
+            held.filter(|s| s.tbl == head.tbl && s.epoch == epoch)
+        };
         if let Some(s) = current(self) {
             return Ok(s);
         }
@@ -202,7 +207,7 @@ impl Store {
         self.remove_locked(&head.meta.id)?;
         let disk = self.disk()?;
         let mut session = Session::load(&disk.db, head.meta.clone(), self.search)?;
-        session.tbl = head.tbl;
+        (session.tbl, session.epoch) = (head.tbl, epoch);
         let meta = serde_json::to_vec(&head.meta).map_err(|e| StoreError::Storage(e.to_string()))?;
         self.note(disk.sessions.insert(head.meta.id.as_bytes(), meta))?;
         let s = Arc::new(session);

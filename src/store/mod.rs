@@ -121,6 +121,8 @@ pub struct Session {
     /// here; the lock orders the applies.
     tbl: i64,
     applied: tokio::sync::Mutex<i64>,
+    /// In a cluster: the log's primary epoch it was loaded under (see `PgLog::epoch`).
+    epoch: u64,
 }
 
 pub struct Store {
@@ -691,6 +693,7 @@ impl Session {
             bytes: AtomicU64::new(bytes),
             tbl: 0,
             applied: tokio::sync::Mutex::new(0),
+            epoch: 0,
         })
     }
 

@@ -16,7 +16,9 @@
 //! `synchronous_standby_names` set), unless it is opened with `Replication::NotRequired`.
 use super::record::{decode_frame, encode_frame, FrameHeader, SessionMeta, Storage};
 use super::{NewFrame, StoreError};
-use deadpool_postgres::{Manager, ManagerConfig, Pool, RecyclingMethod};
+use deadpool_postgres::{Manager, ManagerConfig, Object, Pool, RecyclingMethod};
+use std::sync::atomic::{AtomicU64, Ordering::SeqCst};
+use std::sync::Arc;
 use tokio_postgres::error::SqlState;
 use tokio_postgres::types::ToSql;
 use tokio_postgres::NoTls;
@@ -30,9 +32,23 @@ pub enum Replication {
 }
 
 pub struct PgLog {
-    pool: Pool,
+    db: Arc<Db>,
     /// Each session's writer queue (see `write_session`).
     writers: parking_lot::Mutex<std::collections::HashMap<String, tokio::sync::mpsc::UnboundedSender<Request>>>,
+}
+
+/// The connections, and what the log knows of the primary behind them.
+struct Db {
+    pool: Pool,
+    replication: Replication,
+    /// The primary new connections last reached: its address, port and start time.
+    primary: parking_lot::Mutex<Option<String>>,
+    /// Counts changes of primary (a failover, or a restart): frames read from an earlier primary
+    /// may be missing from this one (visible there before a standby had them), so nodes drop
+    /// what they applied before the change (`epoch`).
+    epoch: AtomicU64,
+    /// Why writes are refused now: the primary does not wait for a synchronous standby.
+    unreplicated: parking_lot::Mutex<Option<String>>,
 }
 
 /// A batch as committed: the frames' ids in order, and the session's version after it.
@@ -79,8 +95,15 @@ fn unavailable(e: &tokio_postgres::Error) -> StoreError {
 
 fn pg_error(e: tokio_postgres::Error) -> StoreError {
     match e.as_db_error() {
-        // Server-side errors are answers: the statement ran and was refused.
-        Some(db) if *db.code() == SqlState::READ_ONLY_SQL_TRANSACTION => unavailable(&e),
+        // A server that is read-only (a standby), shutting down, crashed, starting or out of
+        // connections: another primary or a retry will answer.
+        Some(db)
+            if *db.code() == SqlState::READ_ONLY_SQL_TRANSACTION
+                || ["08", "53", "57"].iter().any(|class| db.code().code().starts_with(class)) =>
+        {
+            unavailable(&e)
+        }
+        // Other server-side errors are answers: the statement ran and was refused.
         Some(db) => StoreError::Storage(format!("database: {}", db.message())),
         None => unavailable(&e),
     }
@@ -90,6 +113,59 @@ fn pool_error(e: deadpool_postgres::PoolError) -> StoreError {
     match e {
         deadpool_postgres::PoolError::Backend(e) => pg_error(e),
         other => StoreError::Unavailable(format!("the cluster database is unavailable ({other}); retry later")),
+    }
+}
+
+impl Db {
+    /// A pooled connection; a new one first says which primary it reached (a change bumps the
+    /// epoch) and whether its commits wait for a synchronous standby.
+    async fn client(&self) -> Result<Object, StoreError> {
+        let client = self.pool.get().await.map_err(pool_error)?;
+        if Object::metrics(&client).recycle_count > 0 {
+            return Ok(client);
+        }
+        match self.check(&client).await {
+            Ok(()) => Ok(client),
+            Err(e) => {
+                // Never back into the pool unchecked.
+                let _ = Object::take(client);
+                Err(e)
+            }
+        }
+    }
+
+    async fn check(&self, client: &Object) -> Result<(), StoreError> {
+        let sql = "SELECT pg_postmaster_start_time()::text || ' ' || coalesce(host(inet_server_addr()), 'socket') \
+                   || ':' || coalesce(inet_server_port(), 0)::text, current_setting('synchronous_commit'), \
+                   current_setting('synchronous_standby_names'), pg_is_in_recovery()";
+        let row = client.query_one(sql, &[]).await.map_err(pg_error)?;
+        let (primary, commit, standbys, recovering): (String, String, String, bool) =
+            (row.get(0), row.get(1), row.get(2), row.get(3));
+        if recovering {
+            return Err(StoreError::Unavailable(format!("{primary} is a standby, not the primary; retry later")));
+        }
+        let waits = !standbys.trim().is_empty() && matches!(commit.as_str(), "on" | "remote_write" | "remote_apply");
+        *self.unreplicated.lock() = (self.replication == Replication::Synchronous && !waits).then(|| {
+            format!(
+                "the cluster database does not wait for a synchronous standby (synchronous_commit = {commit}, \
+                 synchronous_standby_names = '{standbys}'): an acknowledged frame could be lost with the primary"
+            )
+        });
+        let mut known = self.primary.lock();
+        if known.as_ref().is_some_and(|p| *p != primary) {
+            let epoch = self.epoch.fetch_add(1, SeqCst) + 1;
+            tracing::warn!(%primary, epoch, "the cluster database has another primary: cached sessions are reloaded");
+        }
+        *known = Some(primary);
+        Ok(())
+    }
+
+    /// Unavailable while the primary does not wait for a synchronous standby.
+    fn writable(&self) -> Result<(), StoreError> {
+        match self.unreplicated.lock().clone() {
+            Some(why) => Err(StoreError::Unavailable(format!("writes refused: {why}"))),
+            None => Ok(()),
+        }
     }
 }
 
@@ -112,25 +188,29 @@ impl PgLog {
             .max_size(max_connections.max(1))
             .build()
             .map_err(|e| StoreError::InvalidArgument(format!("cluster pool: {e}")))?;
-        let log = Self { pool, writers: Default::default() };
+        let db = Db {
+            pool,
+            replication,
+            primary: Default::default(),
+            epoch: AtomicU64::new(0),
+            unreplicated: Default::default(),
+        };
+        let log = Self { db: Arc::new(db), writers: Default::default() };
         let client = log.client().await?;
         client.batch_execute(SCHEMA).await.map_err(pg_error)?;
-        if replication == Replication::Synchronous {
-            let commit: String = client.query_one("SHOW synchronous_commit", &[]).await.map_err(pg_error)?.get(0);
-            let standbys: String =
-                client.query_one("SHOW synchronous_standby_names", &[]).await.map_err(pg_error)?.get(0);
-            if standbys.trim().is_empty() || !matches!(commit.as_str(), "on" | "remote_write" | "remote_apply") {
-                return Err(StoreError::InvalidArgument(format!(
-                    "the cluster database does not wait for a synchronous standby (synchronous_commit = {commit}, \
-                     synchronous_standby_names = '{standbys}'): an acknowledged frame could be lost with the primary"
-                )));
-            }
+        if let Some(why) = log.db.unreplicated.lock().clone() {
+            return Err(StoreError::InvalidArgument(why));
         }
         Ok(log)
     }
 
-    async fn client(&self) -> Result<deadpool_postgres::Object, StoreError> {
-        self.pool.get().await.map_err(pool_error)
+    async fn client(&self) -> Result<Object, StoreError> {
+        self.db.client().await
+    }
+
+    /// How many times the primary has changed since connecting (see `Db::epoch`).
+    pub fn epoch(&self) -> u64 {
+        self.db.epoch.load(SeqCst)
     }
 
     /// Creates a session and its frames table, in one transaction; returns its table's number.
@@ -210,7 +290,7 @@ impl PgLog {
                 .entry(meta.id.clone())
                 .or_insert_with(|| {
                     let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
-                    tokio::spawn(write_session(self.pool.clone(), meta.id.clone(), rx));
+                    tokio::spawn(write_session(self.db.clone(), meta.id.clone(), rx));
                     tx
                 })
                 .clone()
@@ -274,7 +354,7 @@ const MAX_GROUP_FRAMES: usize = 512;
 
 /// A session's writer: takes every request waiting and commits them in one transaction, until
 /// the session's queue is dropped (the session was deleted or the log closed).
-async fn write_session(pool: Pool, session: String, mut queue: tokio::sync::mpsc::UnboundedReceiver<Request>) {
+async fn write_session(db: Arc<Db>, session: String, mut queue: tokio::sync::mpsc::UnboundedReceiver<Request>) {
     while let Some(first) = queue.recv().await {
         let mut group = vec![first];
         let mut frames = group[0].frames.len();
@@ -287,7 +367,7 @@ async fn write_session(pool: Pool, session: String, mut queue: tokio::sync::mpsc
                 Err(_) => break,
             }
         }
-        let (answers, committed) = match commit_group(&pool, &session, &group).await {
+        let (answers, committed) = match commit_group(&db, &session, &group).await {
             Ok(answers) => (answers, None),
             Err(e) => (Vec::new(), Some(e)),
         };
@@ -304,11 +384,12 @@ async fn write_session(pool: Pool, session: String, mut queue: tokio::sync::mpsc
 /// One transaction for a group of requests, each all or none under its savepoint; what each
 /// request is answered once the commit returned.
 async fn commit_group(
-    pool: &Pool,
+    db: &Db,
     session: &str,
     group: &[Request],
 ) -> Result<Vec<Result<Appended, StoreError>>, StoreError> {
-    let mut client = pool.get().await.map_err(pool_error)?;
+    let mut client = db.client().await?;
+    db.writable()?;
     let tx = client.transaction().await.map_err(pg_error)?;
     // The session row's lock orders the groups of a session: seq follows commit order.
     let row = tx
