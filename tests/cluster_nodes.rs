@@ -26,10 +26,56 @@ fn env(name: &str) -> String {
 async fn node(dir: &std::path::Path, cluster: bool) -> RunningServer {
     let cfg = ServerConfig {
         engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
-        cluster: cluster.then(|| ClusterConfig { url: env("LOOPD_PG_URL"), connections: 8, unreplicated: false }),
+        cluster: cluster.then(|| ClusterConfig {
+            url: env("LOOPD_PG_URL"),
+            connections: 8,
+            unreplicated: false,
+            tenant_refresh: std::time::Duration::from_secs(1),
+        }),
         ..ServerConfig::on_loopback(dir.to_path_buf())
     };
     RunningServer::start(cfg, imagenet_model()).await.unwrap()
+}
+
+const ADMIN: &str = "admin-key-for-the-cluster-tests-0123456789";
+
+/// A cluster node with keys required (the admin key set).
+async fn keyed_node(dir: &std::path::Path) -> RunningServer {
+    let cfg = ServerConfig {
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        cluster: Some(ClusterConfig {
+            url: env("LOOPD_PG_URL"),
+            connections: 4,
+            unreplicated: false,
+            tenant_refresh: std::time::Duration::from_secs(1),
+        }),
+        auth: loopd::auth::AuthConfig { admin_key: Some(ADMIN.into()), ..Default::default() },
+        ..ServerConfig::on_loopback(dir.to_path_buf())
+    };
+    RunningServer::start(cfg, imagenet_model()).await.unwrap()
+}
+
+/// Removes the tenants from the log at the end (pass or fail): keys would be required by every
+/// node started on it afterwards.
+struct ForgetTenants;
+
+impl Drop for ForgetTenants {
+    fn drop(&mut self) {
+        let _ = Command::new("psql").args([&env("LOOPD_PG_URL"), "-tAc", "DELETE FROM loopd_tenants"]).status();
+    }
+}
+
+/// Polls `url` with `key` until it answers `status` (within 10 s); the time it took.
+async fn until_status(http: &reqwest::Client, url: &str, key: &str, status: u16) -> Duration {
+    let t = Instant::now();
+    loop {
+        let r = http.get(url).bearer_auth(key).send().await.unwrap();
+        if r.status() == status {
+            return t.elapsed();
+        }
+        assert!(t.elapsed() < Duration::from_secs(10), "{url} answered {} for 10 s, not {status}", r.status());
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
 }
 
 async fn client(s: &RunningServer) -> Client {
@@ -253,4 +299,44 @@ async fn without_a_primary_writes_are_refused_and_queries_go_on() {
     assert!(after.into_inner().matches.iter().any(|m| m.frame_id == id), "B sees the frame written after the restart");
     assert_eq!(frames_in(&mut gb, "outage").await, Ok(descriptors.len() as u64 + 1), "refused writes left nothing");
     ga.delete_session(pb::DeleteSessionRequest { id: "outage".into() }).await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn keys_issued_or_revoked_through_one_node_hold_on_every_node() {
+    let _forget = ForgetTenants;
+    let dirs: Vec<_> = (0..2).map(|_| tempfile::tempdir().unwrap()).collect();
+    let (a, b) = (keyed_node(dirs[0].path()).await, keyed_node(dirs[1].path()).await);
+    let (base_a, base_b) = (format!("http://{}/v1", a.http_addr), format!("http://{}/v1", b.http_addr));
+    let http = reqwest::Client::new();
+    let issue = |base: String, name: &'static str| {
+        let http = http.clone();
+        async move {
+            let r = http.post(format!("{base}/tenants")).bearer_auth(ADMIN).json(&serde_json::json!({ "name": name }));
+            let v: serde_json::Value = r.send().await.unwrap().json().await.unwrap();
+            v["key"].as_str().unwrap_or_else(|| panic!("no key: {v}")).to_string()
+        }
+    };
+    // A key issued through A works through B within the refresh (1 s here).
+    let key = issue(base_a.clone(), "fleet-a").await;
+    let took = until_status(&http, &format!("{base_b}/sessions"), &key, 200).await;
+    assert!(took < Duration::from_secs(3), "B took {took:?} to take A's key");
+    // The tenant's session, created through B, is its own through A; another tenant's key (issued
+    // through B) does not see it.
+    let made = http.post(format!("{base_b}/sessions")).bearer_auth(&key).json(&serde_json::json!({ "id": "map" }));
+    assert_eq!(made.send().await.unwrap().status(), 201);
+    assert_eq!(http.get(format!("{base_a}/sessions/map")).bearer_auth(&key).send().await.unwrap().status(), 200);
+    let other = issue(base_b.clone(), "fleet-b").await;
+    until_status(&http, &format!("{base_a}/sessions"), &other, 200).await;
+    assert_eq!(http.get(format!("{base_a}/sessions/map")).bearer_auth(&other).send().await.unwrap().status(), 404);
+    let listed = http.get(format!("{base_a}/tenants")).bearer_auth(ADMIN).send().await.unwrap();
+    let listed: serde_json::Value = listed.json().await.unwrap();
+    assert_eq!(listed["tenants"].as_array().map(Vec::len), Some(2), "{listed}");
+    // Revoked through B: refused through A within the refresh.
+    assert_eq!(http.delete(format!("{base_a}/sessions/map")).bearer_auth(&key).send().await.unwrap().status(), 204);
+    let revoked = http.delete(format!("{base_b}/tenants/fleet-a")).bearer_auth(ADMIN).send().await.unwrap();
+    assert_eq!(revoked.status(), 200);
+    let took = until_status(&http, &format!("{base_a}/sessions"), &key, 401).await;
+    assert!(took < Duration::from_secs(3), "A took {took:?} to refuse the revoked key");
+    assert_eq!(http.get(format!("{base_a}/sessions")).bearer_auth(&other).send().await.unwrap().status(), 200);
 }

@@ -62,6 +62,9 @@ pub struct ClusterConfig {
     pub connections: usize,
     /// Trials only: accept a primary whose commits do not wait for a synchronous standby.
     pub unreplicated: bool,
+    /// How often the node reads the tenants again (keys issued or revoked through other nodes
+    /// take effect here within this).
+    pub tenant_refresh: Duration,
 }
 
 /// What one client connection may hold (see `conn.rs`).
@@ -124,6 +127,27 @@ pub struct RunningServer {
     tasks: Vec<tokio::task::JoinHandle<Result<()>>>,
 }
 
+/// A cluster node's tenants, read again from the log every `every` until shutdown.
+async fn refresh_tenants(
+    auth: Arc<Auth>,
+    store: Arc<Store>,
+    every: Duration,
+    mut shutdown: tokio::sync::watch::Receiver<bool>,
+) {
+    let mut tick = tokio::time::interval(every.max(Duration::from_millis(10)));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = shutdown.changed() => return,
+        }
+        match store.tenants_fresh().await {
+            Ok(records) => auth.sync(records),
+            Err(e) => tracing::debug!(error = %e, "tenants not read again from the cluster log"),
+        }
+    }
+}
+
 impl RunningServer {
     /// Binds both listeners (port 0 picks a free one) and starts serving.
     pub async fn start(cfg: ServerConfig, model: Model) -> Result<Self> {
@@ -177,6 +201,9 @@ impl RunningServer {
         }
         let service = LoopService::new(engine, store, cfg.max_jobs, cfg.verify.clone());
         let (shutdown, rx) = tokio::sync::watch::channel(false);
+        if let Some(c) = &cfg.cluster {
+            tokio::spawn(refresh_tenants(auth.clone(), service.store.clone(), c.tenant_refresh, rx.clone()));
+        }
 
         let http = tokio::net::TcpListener::bind(cfg.http_addr)
             .await

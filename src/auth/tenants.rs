@@ -7,6 +7,7 @@ use crate::store::{Store, StoreError};
 use parking_lot::RwLock;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering::SeqCst};
 use std::sync::Arc;
 
 /// Longest Authorization header looked at (a key is 81 characters).
@@ -69,7 +70,8 @@ impl From<&TenantRecord> for TenantInfo {
 }
 
 pub struct Auth {
-    enabled: bool,
+    /// Keys are required (set for good once an admin key or a tenant exists).
+    enabled: AtomicBool,
     admin: Option<[u8; 32]>,
     /// By tenant name, with the quota its requests share.
     tenants: RwLock<HashMap<String, (TenantRecord, Arc<Quota>)>>,
@@ -96,17 +98,49 @@ impl Auth {
         }
         let admin = cfg.admin_key.as_deref().map(str::trim).filter(|k| !k.is_empty()).map(keys::digest);
         let enabled = admin.is_some() || !tenants.is_empty();
-        Ok(Self { enabled, admin, tenants: RwLock::new(tenants), store, tenant_in_flight: cfg.tenant_in_flight })
+        Ok(Self {
+            enabled: AtomicBool::new(enabled),
+            admin,
+            tenants: RwLock::new(tenants),
+            store,
+            tenant_in_flight: cfg.tenant_in_flight,
+        })
     }
 
     pub fn enabled(&self) -> bool {
-        self.enabled
+        self.enabled.load(SeqCst)
+    }
+
+    /// Takes the tenants as `records` say (a cluster's log, read again every so often): keys
+    /// issued through another node start to work here and revoked ones stop. A tenant whose
+    /// record is unchanged keeps its quota's counters.
+    pub fn sync(&self, records: Vec<(String, Vec<u8>)>) {
+        let mut tenants = self.tenants.write();
+        for (name, bytes) in records {
+            let r: TenantRecord = match serde_json::from_slice(&bytes) {
+                Ok(r) => r,
+                Err(e) => {
+                    tracing::warn!(tenant = %name, error = %e, "unreadable tenant record skipped");
+                    continue;
+                }
+            };
+            let same = tenants.get(&name).is_some_and(|(held, _)| {
+                (&held.key_id, &held.key_sha256, held.revoked, held.limits)
+                    == (&r.key_id, &r.key_sha256, r.revoked, r.limits)
+            });
+            if !same {
+                let quota = Arc::new(Quota::new(r.limits, self.tenant_in_flight));
+                tracing::info!(tenant = %name, key_id = %r.key_id, revoked = r.revoked, "tenant record taken from the cluster");
+                tenants.insert(name, (r, quota));
+                self.enabled.store(true, SeqCst);
+            }
+        }
     }
 
     /// The caller a request's Authorization header names. The same answer for an unknown and a
     /// revoked key, and no hint of which part was wrong.
     pub fn authenticate(&self, authorization: Option<&[u8]>) -> Result<Caller, AuthError> {
-        if !self.enabled {
+        if !self.enabled() {
             return Ok(Caller::unauthenticated());
         }
         let unauthenticated = |m: &str| Err(AuthError::Unauthenticated(m.to_string()));
@@ -151,7 +185,7 @@ impl Auth {
                     .into(),
             ));
         }
-        if !self.enabled || caller.is_admin() {
+        if !self.enabled() || caller.is_admin() {
             return Ok(());
         }
         Err(AuthError::PermissionDenied("this route needs the admin key".into()))
@@ -228,8 +262,7 @@ impl Auth {
 
     async fn save(&self, r: &TenantRecord) -> Result<(), AuthError> {
         let bytes = serde_json::to_vec(r).map_err(|e| AuthError::Store(StoreError::Storage(e.to_string())))?;
-        self.store.put_tenant(&r.name, &bytes)?;
-        self.store.durable_records().await?;
+        self.store.put_tenant_durable(&r.name, &bytes).await?;
         Ok(())
     }
 }

@@ -126,6 +126,10 @@ pub struct ServeArgs {
     /// acknowledged frame may then be lost with the primary).
     #[arg(long, env = "LOOPD_CLUSTER_UNREPLICATED", requires = "cluster")]
     pub cluster_unreplicated: bool,
+    /// How often a cluster node reads the tenants again: keys issued or revoked through another
+    /// node take effect here within this.
+    #[arg(long, env = "LOOPD_CLUSTER_TENANT_REFRESH_SECS", default_value_t = 1.0)]
+    pub cluster_tenant_refresh_secs: f64,
 }
 
 impl ServeArgs {
@@ -199,6 +203,7 @@ impl ServeArgs {
                 url: url.clone(),
                 connections: self.cluster_connections.clamp(1, 1024),
                 unreplicated: self.cluster_unreplicated,
+                tenant_refresh: Duration::from_secs_f64(self.cluster_tenant_refresh_secs.clamp(0.01, 3600.0)),
             }),
             connections: ConnectionConfig {
                 header_timeout: Duration::from_secs_f64(self.header_timeout_secs.clamp(0.1, 3600.0)),

@@ -48,11 +48,32 @@ impl Store {
         search: SearchConfig,
     ) -> Result<Self, StoreError> {
         let log = PgLog::connect(url, connections, replication).await?;
+        let tenants = log.tenants().await?;
         let dir = dir.to_path_buf();
         // sled opens and drops its cache with blocking I/O.
-        tokio::task::spawn_blocking(move || Self::open_dir(&dir, search, Some(Cluster { log })))
+        let store = tokio::task::spawn_blocking(move || Self::open_dir(&dir, search, Some(Cluster { log })))
             .await
-            .map_err(|e| StoreError::Storage(format!("opening the cache failed: {e}")))?
+            .map_err(|e| StoreError::Storage(format!("opening the cache failed: {e}")))??;
+        // The log's tenants replace this node's copy, which `Auth` reads at start.
+        store.replace_tenants(&tenants)?;
+        Ok(store)
+    }
+
+    /// Keeps a tenant's record: in a cluster, in the log (then here); else durable in sled.
+    pub async fn put_tenant_durable(&self, name: &str, record: &[u8]) -> Result<(), StoreError> {
+        if let Some(c) = &self.cluster {
+            c.log.put_tenant(name, record).await?;
+        }
+        self.put_tenant(name, record)?;
+        self.durable_records().await
+    }
+
+    /// Every tenant's record as of now: in a cluster, the log's (kept here too).
+    pub async fn tenants_fresh(&self) -> Result<Vec<(String, Vec<u8>)>, StoreError> {
+        let Some(c) = &self.cluster else { return self.tenants() };
+        let tenants = c.log.tenants().await?;
+        self.replace_tenants(&tenants)?;
+        Ok(tenants)
     }
 
     /// Whether sessions live in a cluster log (`serve --cluster`).

@@ -84,7 +84,8 @@ const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS loopd_sessions (
     meta jsonb NOT NULL,
     version bigint NOT NULL DEFAULT 0,
     next_frame_id bigint NOT NULL DEFAULT 0
-)";
+);
+CREATE TABLE IF NOT EXISTS loopd_tenants (name text PRIMARY KEY, record jsonb NOT NULL)";
 
 /// Transient: the database cannot be reached or is switching primaries; retry later. A commit
 /// whose answer was lost may or may not have happened: frames with ids make the retry exact
@@ -271,6 +272,30 @@ impl PgLog {
         // Its writer ends once the requests already queued are answered (SessionNotFound).
         self.writers.lock().remove(session);
         Ok(())
+    }
+
+    /// Stores a tenant's record (its key's hash, limits, revoked or not), replacing the one
+    /// before: acknowledged once on a synchronous standby, like frames.
+    pub async fn put_tenant(&self, name: &str, record: &[u8]) -> Result<(), StoreError> {
+        let record: serde_json::Value =
+            serde_json::from_slice(record).map_err(|e| StoreError::InvalidArgument(format!("tenant record: {e}")))?;
+        let client = self.client().await?;
+        self.db.writable()?;
+        let sql = "INSERT INTO loopd_tenants (name, record) VALUES ($1, $2) \
+                   ON CONFLICT (name) DO UPDATE SET record = EXCLUDED.record";
+        client.execute(sql, &[&name, &record]).await.map_err(pg_error)?;
+        Ok(())
+    }
+
+    /// Every tenant's record, by name.
+    pub async fn tenants(&self) -> Result<Vec<(String, Vec<u8>)>, StoreError> {
+        let rows = self.client().await?.query("SELECT name, record FROM loopd_tenants", &[]).await.map_err(pg_error)?;
+        rows.iter()
+            .map(|r| {
+                let record: serde_json::Value = r.get(1);
+                Ok((r.get(0), serde_json::to_vec(&record).map_err(|e| StoreError::Storage(e.to_string()))?))
+            })
+            .collect()
     }
 
     /// Appends a batch of frames (descriptors already normalised), all or none: a frame id

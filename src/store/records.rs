@@ -38,6 +38,20 @@ impl Store {
         self.put_record(|d| &d.tenants, name, record)
     }
 
+    /// This node's tenant records become exactly `records` (a cluster's, from its log).
+    pub(super) fn replace_tenants(&self, records: &[(String, Vec<u8>)]) -> Result<(), StoreError> {
+        let disk = self.disk()?;
+        let mut batch = sled::Batch::default();
+        for key in disk.tenants.iter().keys() {
+            batch.remove(key?);
+        }
+        for (name, record) in records {
+            batch.insert(name.as_bytes(), record.as_slice());
+        }
+        let r = disk.tenants.apply_batch(batch);
+        self.note(r)
+    }
+
     /// Every tenant record, by name.
     pub fn tenants(&self) -> Result<Vec<(String, Vec<u8>)>, StoreError> {
         self.records(|d| &d.tenants)
