@@ -9,6 +9,8 @@
 //! Run through `scripts/pg-replicated bench` (it starts PostgreSQL with a synchronous standby and
 //! sets LOOPD_PG_URL). env: LOOPD_BENCH_FRAMES (writes per node, default 4000),
 //! LOOPD_BENCH_QUERIES (default 2000), LOOPD_BENCH_COLD_FRAMES (default 100000).
+mod common;
+use common::{descriptor, frame, meta, DIM, WRITERS};
 use indicatif::ProgressBar;
 use loopd::api::server::{ClusterConfig, RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
@@ -17,25 +19,15 @@ use loopd::model::device::DType;
 use loopd::model::Model;
 use loopd::pb::{self, loopd_client::LoopdClient};
 use loopd::store::pg::{PgLog, Replication};
-use loopd::store::record::{SessionMeta, Storage};
+use loopd::store::record::Storage;
 use loopd::store::{NewFrame, NewSession, Store};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
-
-const DIM: usize = 2048;
-const WRITERS: usize = 16;
 
 type Client = LoopdClient<tonic::transport::Channel>;
 
 fn env_usize(name: &str, default: usize) -> usize {
     std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
-}
-
-/// Unit rows that differ per frame (search and write costs do not depend on the values).
-fn descriptor(i: usize) -> Vec<f32> {
-    let mut d: Vec<f32> = (0..DIM).map(|j| (((i * 31 + j * 7) % 97) as f32 + 1.0) / 97.0).collect();
-    loopd::store::normalize(&mut d).expect("non-zero");
-    d
 }
 
 async fn node(dir: &Path, url: Option<&str>) -> anyhow::Result<RunningServer> {
@@ -102,33 +94,6 @@ async fn query(g: &mut Client, session: &str, i: usize) -> Duration {
 fn pct(v: &mut [Duration], p: f64) -> f64 {
     v.sort();
     v[((v.len() - 1) as f64 * p).round() as usize].as_secs_f64() * 1e3
-}
-
-fn meta(id: &str) -> SessionMeta {
-    SessionMeta {
-        id: id.into(),
-        name: id.into(),
-        created: 0.0,
-        dim: DIM,
-        descriptor_id: "bench".into(),
-        storage: Storage::F16,
-        default_query: Default::default(),
-        camera: None,
-        thumbnails: false,
-    }
-}
-
-fn frame(i: usize) -> NewFrame {
-    NewFrame {
-        frame_id: None,
-        robot_id: format!("robot{}", i % WRITERS),
-        timestamp: i as f64,
-        pose: None,
-        metadata: None,
-        descriptor: descriptor(i),
-        features: None,
-        thumbnail: None,
-    }
 }
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]

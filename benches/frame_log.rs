@@ -5,45 +5,14 @@
 //! LOOPD_PG_URL).
 //!
 //! env: LOOPD_BENCH_FRAMES (per case, default 4000)
+mod common;
+use common::{frame, meta, DIM, WRITERS};
 use loopd::store::pg::{PgLog, Replication};
 use loopd::store::query::LoopQuery;
-use loopd::store::record::{SessionMeta, Storage};
+use loopd::store::record::Storage;
 use loopd::store::{NewFrame, NewSession, Store};
 use std::sync::Arc;
 use std::time::Instant;
-
-const DIM: usize = 2048;
-const WRITERS: usize = 16;
-
-fn frame(i: usize) -> NewFrame {
-    // Unit rows that differ per frame (the values do not matter to a write).
-    let mut descriptor: Vec<f32> = (0..DIM).map(|d| (((i * 31 + d * 7) % 97) as f32 + 1.0) / 97.0).collect();
-    loopd::store::normalize(&mut descriptor).expect("non-zero");
-    NewFrame {
-        frame_id: None,
-        robot_id: format!("robot{}", i % WRITERS),
-        timestamp: i as f64,
-        pose: None,
-        metadata: None,
-        descriptor,
-        features: None,
-        thumbnail: None,
-    }
-}
-
-fn meta(id: &str) -> SessionMeta {
-    SessionMeta {
-        id: id.into(),
-        name: id.into(),
-        created: 0.0,
-        dim: DIM,
-        descriptor_id: "bench".into(),
-        storage: Storage::F16,
-        default_query: LoopQuery::default(),
-        camera: None,
-        thumbnails: false,
-    }
-}
 
 /// Frames/s of `n` frames written by WRITERS tasks in batches of `batch`.
 async fn run<F, Fut>(n: usize, batch: usize, write: F) -> f64

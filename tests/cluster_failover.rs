@@ -11,37 +11,15 @@
 //! acknowledged; B and A then answer without the frame and hold exactly the acknowledged ones;
 //! and writes are refused while the new primary has no synchronous standby.
 mod common;
+use common::pg::{env, pg_ctl, psql};
 use common::{data, imagenet_model};
 use loopd::api::server::{ClusterConfig, RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::pb::{self, loopd_client::LoopdClient};
-use std::process::Command;
 use std::time::{Duration, Instant};
 use tonic::Code;
 
 type Client = LoopdClient<tonic::transport::Channel>;
-
-fn env(name: &str) -> String {
-    std::env::var(name).unwrap_or_else(|_| panic!("{name} is unset: run this through scripts/pg-replicated"))
-}
-
-/// `pg_ctl` on one of the script's servers, as the postgres user.
-fn pg_ctl(dir: &str, args: &[&str]) {
-    let status = Command::new("runuser")
-        .args(["-u", "postgres", "--"])
-        .arg(format!("{}/pg_ctl", env("LOOPD_PG_BIN")))
-        .args(["-D", dir, "-w"])
-        .args(args)
-        .status()
-        .unwrap();
-    assert!(status.success(), "pg_ctl {args:?} on {dir}");
-}
-
-fn psql(sql: &str) -> String {
-    let out = Command::new("psql").args([&env("LOOPD_PG_URL"), "-tAc", sql]).output().unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8_lossy(&out.stdout).trim().to_string()
-}
 
 async fn node(dir: &std::path::Path, url: &str) -> RunningServer {
     let cfg = ServerConfig {

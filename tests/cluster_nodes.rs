@@ -8,7 +8,8 @@
 //! the primary stopped, writes answer UNAVAILABLE / 503 with Retry-After while queries go on from
 //! the nodes' indexes (flagged stale), and writes resume once it is back.
 mod common;
-use common::{data, imagenet_model};
+use common::pg::{env, server};
+use common::{data, desk_frame, imagenet_model};
 use loopd::api::server::{ClusterConfig, RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::pb::{self, loopd_client::LoopdClient};
@@ -17,10 +18,6 @@ use std::time::{Duration, Instant};
 use tonic::Code;
 
 type Client = LoopdClient<tonic::transport::Channel>;
-
-fn env(name: &str) -> String {
-    std::env::var(name).unwrap_or_else(|_| panic!("{name} is unset: run these through scripts/pg-replicated"))
-}
 
 /// A server on loopback: a node of the cluster, or (`cluster` false) a plain sled server.
 async fn node(dir: &std::path::Path, cluster: bool) -> RunningServer {
@@ -85,30 +82,6 @@ async fn client(s: &RunningServer) -> Client {
 async fn create(g: &mut Client, id: &str, thumbnails: bool) {
     let r = pb::CreateSessionRequest { id: id.into(), thumbnails, ..Default::default() };
     g.create_session(r).await.unwrap();
-}
-
-/// `pg_ctl` on the primary (as the postgres user, as the script started it).
-fn primary(action: &str) {
-    let dir = env("LOOPD_PG_PRIMARY");
-    let mut c = Command::new("runuser");
-    c.args(["-u", "postgres", "--"]).arg(format!("{}/pg_ctl", env("LOOPD_PG_BIN"))).args(["-D", &dir, "-w"]);
-    match action {
-        "stop" => c.args(["stop", "-m", "fast"]),
-        _ => c.args(["start", "-l", &format!("{dir}.log")]),
-    };
-    assert!(c.status().unwrap().success(), "pg_ctl {action} on the primary");
-}
-
-fn desk(session: &str, i: usize) -> pb::AddFrameRequest {
-    let image = std::fs::read(data(&format!("slambook2-ch11/{i}.png"))).unwrap();
-    pb::AddFrameRequest {
-        session_id: session.into(),
-        robot_id: "desk".into(),
-        timestamp: Some(i as f64),
-        content: Some(pb::add_frame_request::Content::Image(image.into())),
-        options: Some(pb::QueryOptions { k: Some(3), verify: Some(true), ..Default::default() }),
-        ..Default::default()
-    }
 }
 
 fn descriptor_frame(session: &str, robot: &str, t: f64, d: &[f32], id: Option<u64>) -> pb::AddFrameRequest {
@@ -178,7 +151,7 @@ async fn any_node_serves_any_session_and_sees_every_acknowledged_frame() {
     create(&mut ga, "desk", true).await;
     let mut desk_ids = Vec::new();
     for i in 1..=9 {
-        desk_ids.push(ga.add_frame(desk("desk", i)).await.unwrap().into_inner().frame_id);
+        desk_ids.push(ga.add_frame(desk_frame("desk", i)).await.unwrap().into_inner().frame_id);
     }
     assert_eq!(frames_in(&mut gb, "desk").await, Ok(9), "B holds every frame acknowledged through A");
     for &id in &desk_ids {
@@ -190,7 +163,7 @@ async fn any_node_serves_any_session_and_sees_every_acknowledged_frame() {
         assert!(!from_b.jpeg.is_empty());
         assert_eq!(from_a.jpeg, from_b.jpeg, "frame {id}: the same thumbnail through both nodes");
     }
-    let revisit = gb.add_and_query(desk("desk", 10)).await.unwrap().into_inner();
+    let revisit = gb.add_and_query(desk_frame("desk", 10)).await.unwrap().into_inner();
     let best = &revisit.matches[0];
     let inliers = best.verification.as_ref().map_or(0, |v| v.inliers);
     assert_eq!(best.frame_id, desk_ids[0], "10.png revisits 1.png: {:?}", revisit.matches);
@@ -264,7 +237,7 @@ async fn without_a_primary_writes_are_refused_and_queries_go_on() {
     let before = ranked(&gb.query(q.clone()).await.unwrap().into_inner().matches);
     assert_eq!(before.len(), 3);
 
-    primary("stop");
+    server("LOOPD_PG_PRIMARY", "stop");
     let refused = ga.add_frame(descriptor_frame("outage", "r0", 100.0, &descriptors[0], None)).await;
     let stopped = Instant::now();
     assert_eq!(refused.map(|_| ()).unwrap_err().code(), Code::Unavailable);
@@ -284,7 +257,7 @@ async fn without_a_primary_writes_are_refused_and_queries_go_on() {
     assert_eq!(r.status(), 200);
     assert_eq!(r.headers().get("x-loopd-stale").map(|v| v.to_str().unwrap()), Some("1"));
 
-    primary("start");
+    server("LOOPD_PG_PRIMARY", "start");
     // Writes resume once the primary (and its synchronous standby) is back.
     let id = loop {
         match ga.add_frame(descriptor_frame("outage", "r0", 102.0, &descriptors[2], None)).await {

@@ -5,33 +5,12 @@
 //! batches are all or none, a stored frame id answers already-exists (exact retries), versions
 //! follow commit order and a reload gives the frames back bit for bit (f32) in that order, a
 //! deleted session is gone, and a primary whose commits do not wait for a standby is refused.
+mod common;
+use common::pg::{env, psql, server};
 use loopd::store::pg::{PgLog, Replication};
 use loopd::store::record::{SessionMeta, Storage};
 use loopd::store::{normalize, NewFrame, StoreError};
-use std::process::Command;
 use std::time::Duration;
-
-fn env(name: &str) -> String {
-    std::env::var(name).unwrap_or_else(|_| panic!("{name} is unset: run these through scripts/pg-replicated"))
-}
-
-/// `pg_ctl` on the standby (as the postgres user, as the script started it).
-fn standby(action: &str) {
-    let dir = env("LOOPD_PG_STANDBY");
-    let mut c = Command::new("runuser");
-    c.args(["-u", "postgres", "--"]).arg(format!("{}/pg_ctl", env("LOOPD_PG_BIN"))).args(["-D", &dir, "-w"]);
-    match action {
-        "stop" => c.args(["stop", "-m", "fast"]),
-        _ => c.args(["start", "-l", &format!("{dir}.log")]),
-    };
-    assert!(c.status().unwrap().success(), "pg_ctl {action} on the standby");
-}
-
-fn psql(sql: &str) -> String {
-    let out = Command::new("psql").args([&env("LOOPD_PG_URL"), "-tAc", sql]).output().unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8_lossy(&out.stdout).trim().to_string()
-}
 
 fn meta(id: &str) -> SessionMeta {
     SessionMeta {
@@ -95,14 +74,14 @@ async fn frames_are_acknowledged_after_the_standby_has_them_in_commit_order() {
     assert_eq!(log.version("hall").await.unwrap(), 5, "refused batches leave nothing");
 
     // No acknowledgement while the synchronous standby is down: the commit waits for it.
-    standby("stop");
+    server("LOOPD_PG_STANDBY", "stop");
     let waiting = {
         let (log, m) = (log.clone(), m.clone());
         tokio::spawn(async move { log.append(&m, &[frame(7, Some(70))]).await })
     };
     tokio::time::sleep(Duration::from_secs(3)).await;
     assert!(!waiting.is_finished(), "acknowledged without a synchronous standby");
-    standby("start");
+    server("LOOPD_PG_STANDBY", "start");
     let c =
         tokio::time::timeout(Duration::from_secs(60), waiting).await.expect("acknowledged once the standby is back");
     assert_eq!(c.unwrap().unwrap().version, 6);

@@ -19,18 +19,6 @@ async fn start(dir: &std::path::Path) -> RunningServer {
     RunningServer::start(cfg, imagenet_model()).await.unwrap()
 }
 
-fn desk(session: &str, i: usize) -> pb::AddFrameRequest {
-    let image = std::fs::read(data(&format!("slambook2-ch11/{i}.png"))).unwrap();
-    pb::AddFrameRequest {
-        session_id: session.into(),
-        robot_id: "desk".into(),
-        timestamp: Some(i as f64),
-        content: Some(pb::add_frame_request::Content::Image(image.into())),
-        options: Some(pb::QueryOptions { k: Some(3), verify: Some(true), ..Default::default() }),
-        ..Default::default()
-    }
-}
-
 async fn get(http: &reqwest::Client, url: String) -> (u16, Value) {
     let r = http.get(url).send().await.unwrap();
     (r.status().as_u16(), r.json().await.unwrap_or(Value::Null))
@@ -53,13 +41,13 @@ async fn thumbnails_frames_similarity_and_inliers_as_the_inspector_reads_them() 
     let mut ids = Vec::new();
     let mut answered = std::collections::HashMap::new();
     for i in 1..=10 {
-        let a = g.add_and_query(desk("desk", i)).await.unwrap().into_inner();
+        let a = g.add_and_query(desk_frame("desk", i)).await.unwrap().into_inner();
         for m in &a.matches {
             answered.insert((a.frame_id, m.frame_id), m.score);
         }
         ids.push(a.frame_id);
     }
-    g.add_frame(desk("plain", 1)).await.unwrap();
+    g.add_frame(desk_frame("plain", 1)).await.unwrap();
 
     // Thumbnails: a 160x120 JPEG per frame, the same bytes over HTTP and gRPC.
     for &id in &ids {

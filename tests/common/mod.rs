@@ -1,6 +1,7 @@
 //! Paths and loaders shared by the integration tests (real data, real weights).
 #![allow(dead_code)]
 pub mod certs;
+pub mod pg;
 pub mod proc;
 use loopd::model::config::ModelConfig;
 use loopd::model::device::DType;
@@ -79,6 +80,19 @@ pub fn corridor_frame(session: &str, robot: &str, i: usize) -> loopd::pb::AddFra
         timestamp: Some(i as f64),
         content: Some(loopd::pb::add_frame_request::Content::Image(image.into())),
         options: Some(loopd::pb::QueryOptions { k: Some(3), ..Default::default() }),
+        ..Default::default()
+    }
+}
+
+/// A desk frame (slambook2: 10.png revisits 1.png) as an image asking for 3 verified candidates.
+pub fn desk_frame(session: &str, i: usize) -> loopd::pb::AddFrameRequest {
+    let image = std::fs::read(data(&format!("slambook2-ch11/{i}.png"))).expect("reading a desk frame");
+    loopd::pb::AddFrameRequest {
+        session_id: session.into(),
+        robot_id: "desk".into(),
+        timestamp: Some(i as f64),
+        content: Some(loopd::pb::add_frame_request::Content::Image(image.into())),
+        options: Some(loopd::pb::QueryOptions { k: Some(3), verify: Some(true), ..Default::default() }),
         ..Default::default()
     }
 }
