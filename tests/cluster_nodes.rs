@@ -146,12 +146,13 @@ async fn any_node_serves_any_session_and_sees_every_acknowledged_frame() {
         (node(dirs[0].path(), true).await, node(dirs[1].path(), true).await, node(dirs[2].path(), false).await);
     let (mut ga, mut gb, mut gs) = (client(&a).await, client(&b).await, client(&sled).await);
 
-    // Images through A (embedded, features and thumbnails kept); B verifies the revisit
-    // 10.png -> 1.png against the features A stored, and serves A's thumbnails.
+    // Images through A (embedded, features and thumbnails kept, each answered with its
+    // candidates); B verifies the revisit 10.png -> 1.png against the features A stored, and
+    // serves A's thumbnails.
     create(&mut ga, "desk", true).await;
     let mut desk_ids = Vec::new();
     for i in 1..=9 {
-        desk_ids.push(ga.add_frame(desk_frame("desk", i)).await.unwrap().into_inner().frame_id);
+        desk_ids.push(ga.add_and_query(desk_frame("desk", i)).await.unwrap().into_inner().frame_id);
     }
     assert_eq!(frames_in(&mut gb, "desk").await, Ok(9), "B holds every frame acknowledged through A");
     for &id in &desk_ids {
@@ -169,6 +170,43 @@ async fn any_node_serves_any_session_and_sees_every_acknowledged_frame() {
     assert_eq!(best.frame_id, desk_ids[0], "10.png revisits 1.png: {:?}", revisit.matches);
     assert!(inliers >= 30, "verified through B with A's features: {inliers} inliers");
     assert_eq!(frames_in(&mut ga, "desk").await, Ok(10), "A holds the frame written through B");
+
+    // Kept loops go into the log with their frames: both nodes list the same ones. A verdict
+    // given through A shows through B, and stays when B answers the loop again.
+    let http = reqwest::Client::new();
+    let (base_a, base_b) =
+        (format!("http://{}/v1/sessions/desk", a.http_addr), format!("http://{}/v1/sessions/desk", b.http_addr));
+    let listing = |base: &str| {
+        let (http, url) = (http.clone(), format!("{base}/loops?limit=1000"));
+        async move {
+            let v: serde_json::Value = http.get(url).send().await.unwrap().json().await.unwrap();
+            v["loops"].as_array().unwrap().clone()
+        }
+    };
+    let (from_a, from_b) = (listing(&base_a).await, listing(&base_b).await);
+    assert_eq!(from_a, from_b, "the same kept loops through both nodes");
+    let pair = |l: &serde_json::Value| (l["query_frame"].as_u64().unwrap(), l["match_frame"].as_u64().unwrap());
+    let kept = from_a.iter().find(|l| pair(l) == (revisit.frame_id, desk_ids[0])).expect("10 -> 1 kept");
+    assert_eq!(kept["verified"], true, "{kept}");
+    assert_eq!(kept["inliers"].as_u64(), Some(inliers as u64));
+    assert!(from_a.iter().any(|l| l["query_robot"] == "desk" && pair(l).0 == desk_ids[8]), "loops kept through A");
+    let verdict = format!("{base_a}/loops/{}/{}/verdict", revisit.frame_id, desk_ids[0]);
+    let r = http.post(verdict).json(&serde_json::json!({ "accepted": false })).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let judged = |loops: &[serde_json::Value]| {
+        loops.iter().find(|l| pair(l) == (revisit.frame_id, desk_ids[0])).cloned().expect("10 -> 1 listed")
+    };
+    assert_eq!(judged(&listing(&base_b).await)["verdict"]["accepted"], false, "A's verdict through B");
+    let again = pb::QueryRequest {
+        session_id: "desk".into(),
+        content: Some(pb::query_request::Content::FrameId(revisit.frame_id)),
+        options: Some(pb::QueryOptions { k: Some(3), verify: Some(true), ..Default::default() }),
+        ..Default::default()
+    };
+    gb.query(again).await.unwrap();
+    let after = judged(&listing(&base_a).await);
+    assert!(after["found"].as_f64() > kept["found"].as_f64(), "answered again through B: {after}");
+    assert_eq!(after["verdict"]["accepted"], false, "the verdict stays: {after}");
 
     // Read-after-ack, 1,000 times: each frame acknowledged through A is in B's next answer.
     // The same sequence goes to the sled server, which must assign the same ids.

@@ -143,11 +143,15 @@ impl Scoped<'_> {
     }
 
     pub async fn loops(&self, session: &str, filter: &LoopFilter) -> Result<Page, ApiError> {
-        self.service.loops(&self.fresh(session).await?, filter)
+        let sid = self.fresh(session).await?;
+        self.service.store.fresh_loops(&sid).await?;
+        self.service.loops(&sid, filter)
     }
 
     pub async fn snapshot(&self, session: &str) -> Result<crate::export::Snapshot, ApiError> {
-        self.service.snapshot(&self.fresh(session).await?)
+        let sid = self.fresh(session).await?;
+        self.service.store.fresh_loops(&sid).await?;
+        self.service.snapshot(&sid)
     }
 
     pub async fn set_verdict(

@@ -15,7 +15,7 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 
 pub(super) struct Cluster {
-    log: PgLog,
+    pub(super) log: PgLog,
 }
 
 tokio::task_local! {
@@ -129,6 +129,23 @@ impl Store {
         Ok(self.list())
     }
 
+    /// In a cluster, this node's copy of a session's kept loops becomes the log's (before a
+    /// listing or an export); nothing to do with sled.
+    pub async fn fresh_loops(&self, id: &str) -> Result<(), StoreError> {
+        let Some(c) = &self.cluster else { return Ok(()) };
+        let s = self.session(id)?;
+        match c.log.loops(&s.meta.id, s.tbl).await {
+            Ok(loops) => self.note(s.replace_loops(&loops)),
+            // No writable primary: the copy held here answers, flagged stale.
+            Err(StoreError::Unavailable(why)) => {
+                tracing::warn!(session = id, error = %why, "cluster log unavailable: listing this node's copy of the loops");
+                let _ = STALE.try_with(|s| s.set(true));
+                Ok(())
+            }
+            Err(e) => Err(e),
+        }
+    }
+
     pub(super) async fn create_in_cluster(&self, c: &Cluster, meta: SessionMeta) -> Result<SessionMeta, StoreError> {
         let tbl = c.log.create_session(&meta).await?;
         self.cached(c, Head { meta: meta.clone(), tbl, version: 0 })?;
@@ -152,13 +169,14 @@ impl Store {
         frames: Vec<NewFrame>,
         loops: impl FnOnce(&[u64]) -> Vec<LoopRecord>,
     ) -> Result<Vec<u64>, StoreError> {
-        let appended = c.log.append(&s.meta, &frames).await?;
+        // The loops are made for the frames' positions (their ids are assigned in the log's
+        // transaction, which keeps them with the frames).
+        let positions: Vec<u64> = (0..frames.len() as u64).collect();
+        let keep = loops(&positions).into_iter().map(|l| (l.query_frame as usize, l)).collect();
+        let appended = c.log.append_keeping(&s.meta, &frames, keep).await?;
         // Acknowledged from here on: a failure below leaves the frames to the next catch-up.
         if let Err(e) = self.apply_own(c, s, &frames, &appended).await {
             tracing::warn!(session = %s.meta.id, error = %e, "frames stored in the cluster, not yet applied here");
-        }
-        if let Err(e) = self.note(s.write_loops(&loops(&appended.ids))) {
-            tracing::warn!(session = %s.meta.id, error = %e, "loop candidates answered but not kept");
         }
         Ok(appended.ids)
     }

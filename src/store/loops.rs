@@ -113,6 +113,9 @@ impl Store {
         if loops.is_empty() {
             return Ok(());
         }
+        if let Some(c) = &self.cluster {
+            return c.log.keep_loops(s.tbl, &loops).await;
+        }
         self.health.writable()?;
         {
             let trees = s.trees()?;
@@ -142,6 +145,9 @@ impl Store {
                     "covariance must be 36 finite numbers (6x6, row-major)".into(),
                 ));
             }
+        }
+        if let Some(c) = &self.cluster {
+            return c.log.set_verdict((&s.meta.id, s.tbl), query, matched, &verdict).await;
         }
         self.health.writable()?;
         let record = {
@@ -173,6 +179,20 @@ impl Session {
             trees.loops.insert(loop_key(l.query_frame, l.match_frame), value)?;
         }
         Ok(())
+    }
+
+    /// This node's kept loops become exactly `records` (a cluster's, from its log).
+    pub(super) fn replace_loops(&self, records: &[LoopRecord]) -> Result<(), StoreError> {
+        let trees = self.trees()?;
+        let mut batch = sled::Batch::default();
+        for key in trees.loops.iter().keys() {
+            batch.remove(key?);
+        }
+        for l in records {
+            let value = serde_json::to_vec(l).map_err(|e| StoreError::Storage(e.to_string()))?;
+            batch.insert(&loop_key(l.query_frame, l.match_frame)[..], value);
+        }
+        Ok(trees.loops.apply_batch(batch)?)
     }
 
     /// One page of kept loops in (query, match) order, and where the next page starts.

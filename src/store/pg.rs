@@ -14,6 +14,7 @@
 //! A batch is acknowledged only when its COMMIT returned, and the connection refuses a server
 //! whose commits do not wait for a synchronous standby (`synchronous_commit` on or stronger and
 //! `synchronous_standby_names` set), unless it is opened with `Replication::NotRequired`.
+use super::loops::{LoopRecord, Verdict};
 use super::record::{decode_frame, encode_frame, FrameHeader, SessionMeta, Storage};
 use super::{NewFrame, StoreError};
 use deadpool_postgres::{Manager, ManagerConfig, Object, Pool, RecyclingMethod};
@@ -174,6 +175,19 @@ fn frames_table(tbl: i64) -> String {
     format!("loopd_frames_{tbl}")
 }
 
+/// The session's kept loops (`loops.rs` records as JSON), by (query frame, match frame).
+fn loops_table(tbl: i64) -> String {
+    format!("loopd_loops_{tbl}")
+}
+
+fn loop_json(l: &LoopRecord) -> Result<serde_json::Value, StoreError> {
+    serde_json::to_value(l).map_err(|e| StoreError::Storage(e.to_string()))
+}
+
+fn loop_record(v: serde_json::Value) -> Result<LoopRecord, StoreError> {
+    serde_json::from_value(v).map_err(|e| StoreError::Storage(format!("loop record: {e}")))
+}
+
 impl PgLog {
     /// Connects (a multi-host URL with `target_session_attrs=read-write` finds the primary),
     /// creates the schema if missing and checks that commits wait for a synchronous standby.
@@ -229,7 +243,10 @@ impl PgLog {
         let ddl = format!(
             "CREATE TABLE {table} (frame_id bigint PRIMARY KEY, seq bigint NOT NULL UNIQUE, \
              write_id bigint NOT NULL, record bytea NOT NULL, features bytea, thumb bytea); \
-             ALTER TABLE {table} ALTER COLUMN record SET STORAGE EXTERNAL"
+             ALTER TABLE {table} ALTER COLUMN record SET STORAGE EXTERNAL; \
+             CREATE TABLE {} (query_frame bigint, match_frame bigint, record jsonb NOT NULL, \
+             PRIMARY KEY (query_frame, match_frame))",
+            loops_table(tbl)
         );
         tx.batch_execute(&ddl).await.map_err(pg_error)?;
         tx.commit().await.map_err(pg_error)?;
@@ -267,7 +284,7 @@ impl PgLog {
         let tx = client.transaction().await.map_err(pg_error)?;
         let row = tx.query_opt("DELETE FROM loopd_sessions WHERE id = $1 RETURNING tbl", &[&session]).await;
         let tbl: i64 = row.map_err(pg_error)?.ok_or_else(|| StoreError::SessionNotFound(session.into()))?.get(0);
-        tx.batch_execute(&format!("DROP TABLE {}", frames_table(tbl))).await.map_err(pg_error)?;
+        tx.batch_execute(&format!("DROP TABLE {}, {}", frames_table(tbl), loops_table(tbl))).await.map_err(pg_error)?;
         tx.commit().await.map_err(pg_error)?;
         // Its writer ends once the requests already queued are answered (SessionNotFound).
         self.writers.lock().remove(session);
@@ -304,11 +321,26 @@ impl PgLog {
     /// a session at the same time share one transaction (each under its own savepoint), so a
     /// session's throughput is not one commit round trip per batch.
     pub async fn append(&self, meta: &SessionMeta, frames: &[NewFrame]) -> Result<Appended, StoreError> {
+        self.append_keeping(meta, frames, Vec::new()).await
+    }
+
+    /// As [`PgLog::append`], with the loops answered for the frames committed in the same
+    /// transaction. Each is given with the position of its query frame in `frames`: the writer
+    /// sets its `query_frame` to that frame's id.
+    pub async fn append_keeping(
+        &self,
+        meta: &SessionMeta,
+        frames: &[NewFrame],
+        loops: Vec<(usize, LoopRecord)>,
+    ) -> Result<Appended, StoreError> {
         if frames.is_empty() {
             return Ok(Appended { ids: Vec::new(), version: self.version(&meta.id).await? });
         }
+        if loops.iter().any(|(i, _)| *i >= frames.len()) {
+            return Err(StoreError::InvalidArgument("a kept loop names no frame of the batch".into()));
+        }
         let (done, answer) = tokio::sync::oneshot::channel();
-        let request = Request { frames: frames.to_vec(), storage: meta.storage, done };
+        let request = Request { frames: frames.to_vec(), loops, storage: meta.storage, done };
         let queue = {
             let mut writers = self.writers.lock();
             writers
@@ -322,6 +354,64 @@ impl PgLog {
         };
         queue.send(request).map_err(|_| StoreError::Unavailable("the session's writer stopped; retry".into()))?;
         answer.await.map_err(|_| StoreError::Unavailable("the session's writer stopped; retry".into()))?
+    }
+
+    /// Keeps loops answered again for stored frames; a verdict already given stays.
+    pub async fn keep_loops(&self, tbl: i64, loops: &[LoopRecord]) -> Result<(), StoreError> {
+        let client = self.client().await?;
+        self.db.writable()?;
+        let sql = format!(
+            "INSERT INTO {} AS t (query_frame, match_frame, record) VALUES ($1, $2, $3) \
+             ON CONFLICT (query_frame, match_frame) DO UPDATE SET record = CASE WHEN t.record ? 'verdict' \
+             THEN EXCLUDED.record || jsonb_build_object('verdict', t.record->'verdict') ELSE EXCLUDED.record END",
+            loops_table(tbl)
+        );
+        let statement = client.prepare(&sql).await.map_err(pg_error)?;
+        let rows: Vec<(i64, i64, serde_json::Value)> = loops
+            .iter()
+            .map(|l| Ok((l.query_frame as i64, l.match_frame as i64, loop_json(l)?)))
+            .collect::<Result<_, StoreError>>()?;
+        let params: Vec<[&(dyn ToSql + Sync); 3]> =
+            rows.iter().map(|(q, m, r)| [q as &(dyn ToSql + Sync), m, r]).collect();
+        let writes = params.iter().map(|p| client.execute(&statement, p));
+        for w in futures::future::join_all(writes).await {
+            w.map_err(pg_error)?;
+        }
+        Ok(())
+    }
+
+    /// Records a verdict on a kept loop; the loop as it now is.
+    pub async fn set_verdict(
+        &self,
+        (session, tbl): (&str, i64),
+        query: u64,
+        matched: u64,
+        verdict: &Verdict,
+    ) -> Result<LoopRecord, StoreError> {
+        let verdict = serde_json::to_value(verdict).map_err(|e| StoreError::Storage(e.to_string()))?;
+        let client = self.client().await?;
+        self.db.writable()?;
+        let sql = format!(
+            "UPDATE {} SET record = record || jsonb_build_object('verdict', $3::jsonb) \
+             WHERE query_frame = $1 AND match_frame = $2 RETURNING record",
+            loops_table(tbl)
+        );
+        let row = client.query_opt(&sql, &[&(query as i64), &(matched as i64), &verdict]).await.map_err(pg_error)?;
+        let row = row
+            .ok_or_else(|| StoreError::LoopNotFound(format!("no loop {query} -> {matched} in session '{session}'")))?;
+        loop_record(row.get(0))
+    }
+
+    /// Every kept loop of the session whose table is `tbl`.
+    pub async fn loops(&self, session: &str, tbl: i64) -> Result<Vec<LoopRecord>, StoreError> {
+        let sql = format!("SELECT record FROM {} ORDER BY query_frame, match_frame", loops_table(tbl));
+        let rows = match self.client().await?.query(&sql, &[]).await {
+            Err(e) if e.code() == Some(&SqlState::UNDEFINED_TABLE) => {
+                return Err(StoreError::SessionNotFound(session.into()))
+            }
+            rows => rows.map_err(pg_error)?,
+        };
+        rows.into_iter().map(|r| loop_record(r.get(0))).collect()
     }
 
     /// The session's frames with `seq > after`, in `seq` order: a cold load (after 0) or the tail
@@ -370,6 +460,8 @@ fn head(r: &tokio_postgres::Row) -> Result<Head, StoreError> {
 /// One `append` call waiting for its group's commit.
 struct Request {
     frames: Vec<NewFrame>,
+    /// Loops kept with the frames, by the position of their query frame in `frames`.
+    loops: Vec<(usize, LoopRecord)>,
     storage: Storage,
     done: tokio::sync::oneshot::Sender<Result<Appended, StoreError>>,
 }
@@ -428,6 +520,8 @@ async fn commit_group(
         frames_table(tbl)
     );
     let insert = tx.prepare(&sql).await.map_err(pg_error)?;
+    let sql = format!("INSERT INTO {} (query_frame, match_frame, record) VALUES ($1, $2, $3)", loops_table(tbl));
+    let insert_loop = tx.prepare(&sql).await.map_err(pg_error)?;
     let write_id: i64 = rand::random();
     let mut answers = Vec::with_capacity(group.len());
     for r in group {
@@ -470,6 +564,24 @@ async fn commit_group(
                     Err(e) if e.code() == Some(&SqlState::IN_FAILED_SQL_TRANSACTION) && refused.is_some() => {}
                     Err(e) => return Err(pg_error(e)),
                 }
+            }
+        }
+        if refused.is_none() && !r.loops.is_empty() {
+            // The loops answered for these frames, in the same savepoint: kept exactly when they are.
+            let rows: Vec<(i64, i64, serde_json::Value)> = r
+                .loops
+                .iter()
+                .map(|(at, l)| {
+                    let query = ids[*at];
+                    let json = loop_json(&LoopRecord { query_frame: query, ..l.clone() })?;
+                    Ok((query as i64, l.match_frame as i64, json))
+                })
+                .collect::<Result<_, StoreError>>()?;
+            let params: Vec<[&(dyn ToSql + Sync); 3]> =
+                rows.iter().map(|(q, m, json)| [q as &(dyn ToSql + Sync), m, json]).collect();
+            let inserts = params.iter().map(|p| tx.execute(&insert_loop, p));
+            for result in futures::future::join_all(inserts).await {
+                result.map_err(pg_error)?;
             }
         }
         match refused {
