@@ -5,7 +5,8 @@
 //! any other before it arrived (read-after-ack, one round trip, no push between nodes). A frame is
 //! acknowledged once its commit reached a synchronous standby, then applied here.
 //!
-//! Kept loops, verdicts, jobs and tenants stay node-local in this step (docs/cluster.md).
+//! Tenants and kept loops (with verdicts) are in the log as well; sequence jobs stay node-local
+//! in this step (docs/cluster.md).
 use super::loops::LoopRecord;
 use super::pg::{Appended, Head, PgLog, Replication};
 use super::record::{encode_frame, frame_key, FrameHeader, SessionMeta};

@@ -7,7 +7,9 @@
 //! `loopd_frames_<tbl>(frame_id, seq, write_id, record, features, thumb)`, so deleting a session
 //! is a DROP TABLE as it is a dropped tree in sled. `record` is the sled frame record
 //! (`record.rs`: header JSON and the descriptor in the session's storage); features and the
-//! thumbnail are the opaque bytes sled keeps beside it. A batch is one transaction under the session row's lock:
+//! thumbnail are the opaque bytes sled keeps beside it. Each session also has
+//! `loopd_loops_<tbl>(query_frame, match_frame, record)` (its kept loops, `loops.rs` records as
+//! JSON), and `loopd_tenants(name, record)` holds the tenants. A batch is one transaction under the session row's lock:
 //! `seq` follows commit order per session, and `version` is the highest `seq` committed, so a
 //! node that has applied every `seq <= v` holds every frame acknowledged up to `v`.
 //!
