@@ -225,14 +225,20 @@ async fn any_node_serves_any_session_and_sees_every_acknowledged_frame() {
         let answer = gb.query(query("ping", by_descriptor(d), copies)).await.unwrap().into_inner();
         assert!(answer.matches.iter().any(|m| m.frame_id == id), "frame {id} missing from B's answer");
     }
-    // The cluster's answers are the sled server's: ids, order and scores.
+    // The cluster's answers are the sled server's: ids, order and scores. Node C starts now and
+    // loads the session on its first request (two pages of the log's tail).
+    let dir_c = tempfile::tempdir().unwrap();
+    let c = node(dir_c.path(), true).await;
+    let mut gc = client(&c).await;
     for d in &descriptors {
         let q = query("ping", by_descriptor(d), 10);
         let on_sled = ranked(&gs.query(q.clone()).await.unwrap().into_inner().matches);
         assert_eq!(on_sled.len(), 10);
+        assert_eq!(ranked(&gc.query(q.clone()).await.unwrap().into_inner().matches), on_sled, "node C");
         assert_eq!(ranked(&ga.query(q.clone()).await.unwrap().into_inner().matches), on_sled, "node A");
         assert_eq!(ranked(&gb.query(q).await.unwrap().into_inner().matches), on_sled, "node B");
     }
+    assert_eq!(frames_in(&mut gc, "ping").await, Ok(1000));
 
     // A frame id stored through one node is refused through the other (exact retries).
     let taken = descriptor_frame("ping", "r0", 2000.0, &descriptors[0], Some(5000));

@@ -15,6 +15,9 @@ use std::path::Path;
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 
+/// Frames one read of a session's tail brings at most.
+const TAIL_PAGE: i64 = 512;
+
 pub(super) struct Cluster {
     pub(super) log: PgLog,
 }
@@ -211,18 +214,24 @@ impl Store {
         if *applied >= version {
             return Ok(());
         }
-        let frames = match c.log.tail(&s.meta.id, s.tbl, *applied).await {
-            Err(StoreError::SessionNotFound(id)) => {
-                drop(applied);
-                self.remove_local(&id)?;
-                return Err(StoreError::SessionNotFound(id));
+        // Pages keep a cold load's memory bounded (features can be tens of KB a frame).
+        while *applied < version {
+            let frames = match c.log.tail(&s.meta.id, s.tbl, *applied, TAIL_PAGE).await {
+                Err(StoreError::SessionNotFound(id)) => {
+                    drop(applied);
+                    self.remove_local(&id)?;
+                    return Err(StoreError::SessionNotFound(id));
+                }
+                frames => frames?,
+            };
+            if frames.is_empty() {
+                break;
             }
-            frames => frames?,
-        };
-        for f in frames {
-            let (features, thumbnail) = (f.features.as_deref(), f.thumbnail.as_deref());
-            self.note(s.apply(f.frame_id, &f.header, &f.descriptor, features, thumbnail))?;
-            *applied = f.seq;
+            for f in frames {
+                let (features, thumbnail) = (f.features.as_deref(), f.thumbnail.as_deref());
+                self.note(s.apply(f.frame_id, &f.header, &f.descriptor, features, thumbnail))?;
+                *applied = f.seq;
+            }
         }
         Ok(())
     }

@@ -420,17 +420,18 @@ impl PgLog {
     /// a node has not applied yet.
     pub async fn frames(&self, session: &str, after: i64) -> Result<Vec<LoggedFrame>, StoreError> {
         let tbl = self.head(session).await?.tbl;
-        self.tail(session, tbl, after).await
+        self.tail(session, tbl, after, i64::MAX).await
     }
 
-    /// As [`PgLog::frames`], from the session's table `tbl` (SessionNotFound once it is dropped).
-    pub async fn tail(&self, session: &str, tbl: i64, after: i64) -> Result<Vec<LoggedFrame>, StoreError> {
+    /// As [`PgLog::frames`], from the session's table `tbl` (SessionNotFound once it is
+    /// dropped), at most `limit` frames: a node loads a large session page by page.
+    pub async fn tail(&self, session: &str, tbl: i64, after: i64, limit: i64) -> Result<Vec<LoggedFrame>, StoreError> {
         let client = self.client().await?;
         let sql = format!(
-            "SELECT seq, frame_id, record, features, thumb FROM {} WHERE seq > $1 ORDER BY seq",
+            "SELECT seq, frame_id, record, features, thumb FROM {} WHERE seq > $1 ORDER BY seq LIMIT $2",
             frames_table(tbl)
         );
-        let rows = match client.query(&sql, &[&after]).await {
+        let rows = match client.query(&sql, &[&after, &limit]).await {
             Err(e) if e.code() == Some(&SqlState::UNDEFINED_TABLE) => {
                 return Err(StoreError::SessionNotFound(session.into()))
             }
