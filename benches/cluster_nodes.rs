@@ -10,7 +10,7 @@
 //! sets LOOPD_PG_URL). env: LOOPD_BENCH_FRAMES (writes per node, default 4000),
 //! LOOPD_BENCH_QUERIES (default 2000), LOOPD_BENCH_COLD_FRAMES (default 100000).
 mod common;
-use common::{descriptor, frame, meta, DIM, WRITERS};
+use common::{descriptor, frame, meta, new_session, WRITERS};
 use indicatif::ProgressBar;
 use loopd::api::server::{ClusterConfig, RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
@@ -19,8 +19,7 @@ use loopd::model::device::DType;
 use loopd::model::Model;
 use loopd::pb::{self, loopd_client::LoopdClient};
 use loopd::store::pg::{PgLog, Replication};
-use loopd::store::record::Storage;
-use loopd::store::{NewFrame, NewSession, Store};
+use loopd::store::{NewFrame, Store};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -131,16 +130,7 @@ async fn main() -> anyhow::Result<()> {
     let log = PgLog::connect(&url, 4, Replication::Synchronous).await?;
     log.create_session(&meta("cold")).await?;
     let store = Store::open(dirs[2].path())?;
-    let new = NewSession {
-        name: "cold".into(),
-        dim: DIM,
-        descriptor_id: "bench".into(),
-        storage: Storage::F16,
-        default_query: Default::default(),
-        camera: None,
-        thumbnails: false,
-    };
-    let session = store.create_session(Some("cold".into()), new).await?;
+    let session = store.create_session(Some("cold".into()), new_session("cold")).await?;
     let session = store.session(&session.id)?;
     let bar = ProgressBar::new(cold as u64);
     for start in (0..cold).step_by(512) {

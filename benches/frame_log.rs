@@ -6,11 +6,9 @@
 //!
 //! env: LOOPD_BENCH_FRAMES (per case, default 4000)
 mod common;
-use common::{frame, meta, DIM, WRITERS};
+use common::{frame, meta, new_session, WRITERS};
 use loopd::store::pg::{PgLog, Replication};
-use loopd::store::query::LoopQuery;
-use loopd::store::record::Storage;
-use loopd::store::{NewFrame, NewSession, Store};
+use loopd::store::{NewFrame, Store};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -51,16 +49,7 @@ async fn main() -> anyhow::Result<()> {
         let id = format!("bench{batch}");
         let m = meta(&id);
         log.create_session(&m).await?;
-        let new = NewSession {
-            name: id.clone(),
-            dim: DIM,
-            descriptor_id: "bench".into(),
-            storage: Storage::F16,
-            default_query: LoopQuery::default(),
-            camera: None,
-            thumbnails: false,
-        };
-        store.create_session(Some(id.clone()), new).await?;
+        store.create_session(Some(id.clone()), new_session(&id)).await?;
         let pg = {
             let (log, m) = (log.clone(), m.clone());
             run(n, batch, move |frames| {

@@ -2,7 +2,7 @@
 //! that differ per frame (write and search costs do not depend on the values).
 use loopd::store::query::LoopQuery;
 use loopd::store::record::{SessionMeta, Storage};
-use loopd::store::NewFrame;
+use loopd::store::{NewFrame, NewSession};
 
 pub const DIM: usize = 2048;
 /// Writers at once, and robots the frames are spread over.
@@ -38,5 +38,19 @@ pub fn meta(id: &str) -> SessionMeta {
         default_query: LoopQuery::default(),
         camera: None,
         thumbnails: false,
+    }
+}
+
+/// What `Store::create_session` takes for a session like `meta`'s.
+pub fn new_session(id: &str) -> NewSession {
+    let m = meta(id);
+    NewSession {
+        name: m.name,
+        dim: m.dim,
+        descriptor_id: m.descriptor_id,
+        storage: m.storage,
+        default_query: m.default_query,
+        camera: m.camera,
+        thumbnails: m.thumbnails,
     }
 }

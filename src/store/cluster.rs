@@ -80,11 +80,6 @@ impl Store {
         Ok(tenants)
     }
 
-    /// Whether sessions live in a cluster log (`serve --cluster`).
-    pub fn clustered(&self) -> bool {
-        self.cluster.is_some()
-    }
-
     /// The session as of now. In a cluster: loaded on first use, brought up to the log's version
     /// (read-after-ack across nodes), and forgotten here once deleted through another node.
     pub async fn fresh(&self, id: &str) -> Result<Arc<Session>, StoreError> {
@@ -198,8 +193,10 @@ impl Store {
         let first = appended.version - frames.len() as i64;
         if *applied == first {
             for (f, &id) in frames.iter().zip(&appended.ids) {
-                let (features, thumbnail) = (f.features.as_deref(), f.thumbnail.as_deref());
-                self.note(s.apply(id, &f.header(), &f.descriptor, features, thumbnail))?;
+                let header = f.header();
+                let record = encode_frame(&header, &f.descriptor, s.meta.storage);
+                let extras = (f.features.as_deref(), f.thumbnail.as_deref());
+                self.note(s.apply(id, &record, &header, &f.descriptor, extras))?;
             }
             *applied = appended.version;
             return Ok(());
@@ -228,8 +225,8 @@ impl Store {
                 break;
             }
             for f in frames {
-                let (features, thumbnail) = (f.features.as_deref(), f.thumbnail.as_deref());
-                self.note(s.apply(f.frame_id, &f.header, &f.descriptor, features, thumbnail))?;
+                let extras = (f.features.as_deref(), f.thumbnail.as_deref());
+                self.note(s.apply(f.frame_id, &f.record, &f.header, &f.descriptor, extras))?;
                 *applied = f.seq;
             }
         }
@@ -265,20 +262,24 @@ impl Store {
     }
 }
 
+/// A frame's local features and thumbnail, if it has them.
+type Extras<'a> = (Option<&'a [u8]>, Option<&'a [u8]>);
+
 impl Session {
     /// Puts a frame from the log into this node's cache and index (not flushed: the log is the
     /// durable copy).
+    /// `record` is the frame as sled stores it (the log keeps the same bytes).
     fn apply(
         &self,
         id: u64,
+        record: &[u8],
         header: &FrameHeader,
         descriptor: &[f32],
-        features: Option<&[u8]>,
-        thumbnail: Option<&[u8]>,
+        extras: Extras,
     ) -> Result<(), StoreError> {
+        let (features, thumbnail) = extras;
         let trees = self.trees()?;
-        let value = encode_frame(header, descriptor, self.meta.storage);
-        trees.frames.insert(frame_key(id), value.as_slice())?;
+        trees.frames.insert(frame_key(id), record)?;
         if let Some(features) = features {
             trees.features.insert(frame_key(id), features)?;
         }
@@ -287,7 +288,7 @@ impl Session {
         }
         self.index.write().push(id, &header.robot_id, header.timestamp, header.pose, descriptor);
         self.next_id.fetch_max(id.saturating_add(1), Relaxed);
-        self.bytes.fetch_add((8 + value.len()) as u64, Relaxed);
+        self.bytes.fetch_add((8 + record.len()) as u64, Relaxed);
         Ok(())
     }
 }

@@ -68,6 +68,8 @@ pub struct LoggedFrame {
     pub frame_id: u64,
     pub header: FrameHeader,
     pub descriptor: Vec<f32>,
+    /// The record as stored (the sled frame record of `header` and `descriptor`).
+    pub record: Vec<u8>,
     pub features: Option<Vec<u8>>,
     pub thumbnail: Option<Vec<u8>>,
 }
@@ -182,8 +184,11 @@ fn loops_table(tbl: i64) -> String {
     format!("loopd_loops_{tbl}")
 }
 
-fn loop_json(l: &LoopRecord) -> Result<serde_json::Value, StoreError> {
-    serde_json::to_value(l).map_err(|e| StoreError::Storage(e.to_string()))
+/// A loop table row: the loop as kept for the frame `query` (its key and its JSON).
+fn loop_row(query: u64, l: &LoopRecord) -> Result<(i64, i64, serde_json::Value), StoreError> {
+    let json = serde_json::to_value(LoopRecord { query_frame: query, ..l.clone() })
+        .map_err(|e| StoreError::Storage(e.to_string()))?;
+    Ok((query as i64, l.match_frame as i64, json))
 }
 
 fn loop_record(v: serde_json::Value) -> Result<LoopRecord, StoreError> {
@@ -369,10 +374,7 @@ impl PgLog {
             loops_table(tbl)
         );
         let statement = client.prepare(&sql).await.map_err(pg_error)?;
-        let rows: Vec<(i64, i64, serde_json::Value)> = loops
-            .iter()
-            .map(|l| Ok((l.query_frame as i64, l.match_frame as i64, loop_json(l)?)))
-            .collect::<Result<_, StoreError>>()?;
+        let rows = loops.iter().map(|l| loop_row(l.query_frame, l)).collect::<Result<Vec<_>, _>>()?;
         let params: Vec<[&(dyn ToSql + Sync); 3]> =
             rows.iter().map(|(q, m, r)| [q as &(dyn ToSql + Sync), m, r]).collect();
         let writes = params.iter().map(|p| client.execute(&statement, p));
@@ -446,6 +448,7 @@ impl PgLog {
                     frame_id: frame_id as u64,
                     header,
                     descriptor,
+                    record,
                     features: r.get(3),
                     thumbnail: r.get(4),
                 })
@@ -571,15 +574,7 @@ async fn commit_group(
         }
         if refused.is_none() && !r.loops.is_empty() {
             // The loops answered for these frames, in the same savepoint: kept exactly when they are.
-            let rows: Vec<(i64, i64, serde_json::Value)> = r
-                .loops
-                .iter()
-                .map(|(at, l)| {
-                    let query = ids[*at];
-                    let json = loop_json(&LoopRecord { query_frame: query, ..l.clone() })?;
-                    Ok((query as i64, l.match_frame as i64, json))
-                })
-                .collect::<Result<_, StoreError>>()?;
+            let rows = r.loops.iter().map(|(at, l)| loop_row(ids[*at], l)).collect::<Result<Vec<_>, _>>()?;
             let params: Vec<[&(dyn ToSql + Sync); 3]> =
                 rows.iter().map(|(q, m, json)| [q as &(dyn ToSql + Sync), m, json]).collect();
             let inserts = params.iter().map(|p| tx.execute(&insert_loop, p));
