@@ -189,15 +189,10 @@ fn the_same_seed_gives_the_same_heads_and_a_resumed_run_continues() {
 fn one_training_step_equals_the_pytorch_reference() {
     let _turn = turn();
     let dir = tempfile::tempdir().unwrap();
-    let model = imagenet_model_at(64, 64);
-    model.randomize(9, true); // random heads: every head tensor gets a gradient
     let w = dir.path().join("weights.safetensors");
-    let meta = HashMap::from([("stride_layout".to_string(), "v1".to_string())]);
-    WeightFile::write(&w, &named_tensors(model.var_store()), meta).unwrap();
     let mut cfg = ModelConfig::default();
     cfg.preprocess.width = 64;
     cfg.preprocess.height = 64;
-    let (model, _) = Model::load(&w, cfg.clone(), Device::Cpu, DType::F32).unwrap();
     // Two real places, two views each: the desk loop (1.png, 10.png) and an EuRoC loop.
     let files =
         ["slambook2-ch11/1.png", "slambook2-ch11/10.png", "euroc-lcd/left_img_0.png", "euroc-lcd/left_img_1.png"];
@@ -214,9 +209,22 @@ fn one_training_step_equals_the_pytorch_reference() {
     let pos = &same - Tensor::eye(4, (Kind::Float, Device::Cpu));
     let neg = 1.0 - &same;
     let r = Recipe { lr: 1e-3, clip_norm: 0.5, ..recipe(1, 0) };
-    let (mut opt, params) = optimizer(&model, &r).unwrap();
-    let loss = step(&model, &mut opt, &params, &x, &pos, &neg, &r, r.lr).unwrap();
-    assert!(loss > 0.0, "loss {loss}");
+    // Random heads, so that every head tensor gets a gradient. Some draws mine no pair from
+    // these four images (loss 0, nothing to compare; seen twice in CI with seed 9): the next
+    // seed is drawn then.
+    let (model, opt, params, loss) = (9..25)
+        .find_map(|seed| {
+            let model = imagenet_model_at(64, 64);
+            model.randomize(seed, true);
+            let meta = HashMap::from([("stride_layout".to_string(), "v1".to_string())]);
+            WeightFile::write(&w, &named_tensors(model.var_store()), meta).unwrap();
+            let (model, _) = Model::load(&w, cfg.clone(), Device::Cpu, DType::F32).unwrap();
+            let (mut opt, params) = optimizer(&model, &r).unwrap();
+            let loss = step(&model, &mut opt, &params, &x, &pos, &neg, &r, r.lr).unwrap();
+            (loss > 0.0).then_some((model, opt, params, loss))
+        })
+        .expect("16 draws of random heads, none with a positive loss");
+    drop((opt, params));
     let mut expected = vec![("loss".to_string(), Tensor::from_slice(&[loss as f32]))];
     for (name, t) in model.var_store().variables() {
         if name.starts_with("attention.") || name.starts_with("fusion.") {
