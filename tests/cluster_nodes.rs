@@ -6,7 +6,8 @@
 //! nodes, 1,000 times; the cluster answers the same top-k ids, order and scores as one sled node
 //! given the same sequence; duplicate ids, deletes and re-creations seen by every node; and with
 //! the primary stopped, writes answer UNAVAILABLE / 503 with Retry-After while queries go on from
-//! the nodes' indexes (flagged stale), and writes resume once it is back.
+//! the nodes' indexes (flagged stale), readiness (/readyz, gRPC health) turns false, and writes
+//! and readiness resume once it is back.
 mod common;
 use common::pg::{env, server};
 use common::{data, desk_frame, imagenet_model};
@@ -72,6 +73,29 @@ async fn until_status(http: &reqwest::Client, url: &str, key: &str, status: u16)
         }
         assert!(t.elapsed() < Duration::from_secs(10), "{url} answered {} for 10 s, not {status}", r.status());
         tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// A node's readiness as the balancer sees it: `/readyz`'s status and gRPC health's (1 SERVING,
+/// 2 NOT_SERVING).
+async fn readiness(s: &RunningServer) -> (u16, i32) {
+    let http = reqwest::get(format!("http://{}/readyz", s.http_addr)).await.unwrap().status().as_u16();
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{}", s.grpc_addr)).unwrap();
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel.connect().await.unwrap());
+    let grpc = health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await.unwrap();
+    (http, grpc.into_inner().status)
+}
+
+/// Waits (at most 15 s) until `s` reports `want` (see [`readiness`]).
+async fn until_readiness(s: &RunningServer, want: (u16, i32)) {
+    let t = Instant::now();
+    loop {
+        let now = readiness(s).await;
+        if now == want {
+            return;
+        }
+        assert!(t.elapsed() < Duration::from_secs(15), "readiness {now:?} for 15 s, not {want:?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 
@@ -280,6 +304,7 @@ async fn without_a_primary_writes_are_refused_and_queries_go_on() {
     let q = query("outage", by_descriptor(&descriptors[2]), 3);
     let before = ranked(&gb.query(q.clone()).await.unwrap().into_inner().matches);
     assert_eq!(before.len(), 3);
+    until_readiness(&b, (200, 1)).await;
 
     server("LOOPD_PG_PRIMARY", "stop");
     let refused = ga.add_frame(descriptor_frame("outage", "r0", 100.0, &descriptors[0], None)).await;
@@ -300,6 +325,10 @@ async fn without_a_primary_writes_are_refused_and_queries_go_on() {
     let r = http.post(format!("http://{}/v1/sessions/outage/query", b.http_addr)).json(&body).send().await.unwrap();
     assert_eq!(r.status(), 200);
     assert_eq!(r.headers().get("x-loopd-stale").map(|v| v.to_str().unwrap()), Some("1"));
+    // Not ready (the balancer sends calls to nodes that can write, if any), and says why.
+    until_readiness(&b, (503, 2)).await;
+    let why = reqwest::get(format!("http://{}/readyz", b.http_addr)).await.unwrap().text().await.unwrap();
+    assert!(why.contains("not ready") && why.contains("database"), "{why}");
 
     server("LOOPD_PG_PRIMARY", "start");
     // Writes resume once the primary (and its synchronous standby) is back.
@@ -315,6 +344,7 @@ async fn without_a_primary_writes_are_refused_and_queries_go_on() {
     assert!(after.metadata().get("loopd-stale").is_none(), "not stale once the primary is back");
     assert!(after.into_inner().matches.iter().any(|m| m.frame_id == id), "B sees the frame written after the restart");
     assert_eq!(frames_in(&mut gb, "outage").await, Ok(descriptors.len() as u64 + 1), "refused writes left nothing");
+    until_readiness(&b, (200, 1)).await;
     ga.delete_session(pb::DeleteSessionRequest { id: "outage".into() }).await.unwrap();
 }
 

@@ -175,3 +175,23 @@ async fn concurrent_batches_commit_together_and_a_refused_one_alone() {
     let e = log.append(&m, &[frame(0, None)]).await.unwrap_err();
     assert_eq!(e, StoreError::SessionNotFound("yard".into()));
 }
+
+/// Nodes started together on an empty database all join: the schema is created once, not raced
+/// (CREATE TABLE IF NOT EXISTS alone fails one of them with a unique violation in the catalog).
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn nodes_joining_an_empty_database_at_once_all_join() {
+    let url = env("LOOPD_PG_URL");
+    let (base, _) = url.rsplit_once('/').unwrap();
+    for round in 0..5 {
+        let db = format!("loopd_join_{round}");
+        psql(&format!("DROP DATABASE IF EXISTS {db} WITH (FORCE)"));
+        psql(&format!("CREATE DATABASE {db}"));
+        let url = format!("{base}/{db}");
+        let joins = (0..8).map(|_| PgLog::connect(&url, 1, Replication::Synchronous));
+        for (i, joined) in futures::future::join_all(joins).await.into_iter().enumerate() {
+            assert!(joined.is_ok(), "round {round}, node {i}: {:?}", joined.err());
+        }
+        psql(&format!("DROP DATABASE {db} WITH (FORCE)"));
+    }
+}

@@ -70,14 +70,12 @@ async fn mark_stale(req: Request, next: axum::middleware::Next) -> axum::respons
     response
 }
 
-/// 503 while writes cannot succeed (a storage failure not yet recovered): a balancer or an
-/// orchestrator sends robots elsewhere meanwhile.
+/// 503 while writes cannot succeed (a storage failure not yet recovered, or in a cluster no
+/// writable primary at the last probe): a balancer or an orchestrator sends robots elsewhere.
 async fn ready(State(s): State<Arc<AppState>>) -> Result<&'static str, ApiError> {
-    match s.service.store.failure() {
+    match s.service.store.readiness() {
         None => Ok("ready"),
-        Some(e) => {
-            Err(ApiError::Unavailable(format!("not ready: storage failed ({e}); writes are refused until it recovers")))
-        }
+        Some(e) => Err(ApiError::Unavailable(format!("not ready: {e}; writes are refused until it recovers"))),
     }
 }
 

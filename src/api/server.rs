@@ -127,8 +127,9 @@ pub struct RunningServer {
     tasks: Vec<tokio::task::JoinHandle<Result<()>>>,
 }
 
-/// A cluster node's tenants, read again from the log every `every` until shutdown.
-async fn refresh_tenants(
+/// A cluster node following the log every `every` until shutdown: its tenants read again, and
+/// whether the log takes writes (readiness: /readyz and gRPC health).
+async fn follow_cluster(
     auth: Arc<Auth>,
     store: Arc<Store>,
     every: Duration,
@@ -145,6 +146,7 @@ async fn refresh_tenants(
             Ok(records) => auth.sync(records),
             Err(e) => tracing::debug!(error = %e, "tenants not read again from the cluster log"),
         }
+        store.probe_log(every.max(Duration::from_secs(2))).await;
     }
 }
 
@@ -202,7 +204,7 @@ impl RunningServer {
         let service = LoopService::new(engine, store, cfg.max_jobs, cfg.verify.clone());
         let (shutdown, rx) = tokio::sync::watch::channel(false);
         if let Some(c) = &cfg.cluster {
-            tokio::spawn(refresh_tenants(auth.clone(), service.store.clone(), c.tenant_refresh, rx.clone()));
+            tokio::spawn(follow_cluster(auth.clone(), service.store.clone(), c.tenant_refresh, rx.clone()));
         }
 
         let http = tokio::net::TcpListener::bind(cfg.http_addr)
@@ -300,10 +302,10 @@ async fn watch_storage(
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) -> Result<()> {
     let serving = std::sync::atomic::AtomicBool::new(true);
-    // Health follows the store within a tick, before and after each reopen (which can take
-    // seconds); reopens are tried every `every`.
+    // Health follows the store (and in a cluster the log's last probe) within a tick, before and
+    // after each reopen (which can take seconds); reopens are tried every `every`.
     let report = || async {
-        let ok = store.failure().is_none();
+        let ok = store.readiness().is_none();
         if serving.swap(ok, std::sync::atomic::Ordering::Relaxed) != ok {
             let status = if ok { ServingStatus::Serving } else { ServingStatus::NotServing };
             health.set_service_status("", status).await;

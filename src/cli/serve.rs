@@ -126,8 +126,8 @@ pub struct ServeArgs {
     /// acknowledged frame may then be lost with the primary).
     #[arg(long, env = "LOOPD_CLUSTER_UNREPLICATED", requires = "cluster")]
     pub cluster_unreplicated: bool,
-    /// How often a cluster node reads the tenants again: keys issued or revoked through another
-    /// node take effect here within this.
+    /// How often a cluster node reads the tenants again (keys issued or revoked through another
+    /// node take effect here within this) and checks that the log takes writes (readiness).
     #[arg(long, env = "LOOPD_CLUSTER_TENANT_REFRESH_SECS", default_value_t = 1.0)]
     pub cluster_tenant_refresh_secs: f64,
 }

@@ -20,6 +20,8 @@ const TAIL_PAGE: i64 = 512;
 
 pub(super) struct Cluster {
     pub(super) log: PgLog,
+    /// Why the log did not take writes at the last probe (`Store::probe_log`); None when it did.
+    not_writable: parking_lot::Mutex<Option<String>>,
 }
 
 tokio::task_local! {
@@ -55,12 +57,35 @@ impl Store {
         let tenants = log.tenants().await?;
         let dir = dir.to_path_buf();
         // sled opens and drops its cache with blocking I/O.
-        let store = tokio::task::spawn_blocking(move || Self::open_dir(&dir, search, Some(Cluster { log })))
-            .await
-            .map_err(|e| StoreError::Storage(format!("opening the cache failed: {e}")))??;
+        let store = tokio::task::spawn_blocking(move || {
+            Self::open_dir(&dir, search, Some(Cluster { log, not_writable: Default::default() }))
+        })
+        .await
+        .map_err(|e| StoreError::Storage(format!("opening the cache failed: {e}")))??;
         // The log's tenants replace this node's copy, which `Auth` reads at start.
         store.replace_tenants(&tenants)?;
         Ok(store)
+    }
+
+    /// Asks the log whether it takes writes now, waiting at most `within`; readiness reports the
+    /// answer until the next probe (the balancer then sends calls to nodes that can write).
+    pub async fn probe_log(&self, within: std::time::Duration) {
+        let Some(c) = &self.cluster else { return };
+        let answer = match tokio::time::timeout(within, c.log.probe()).await {
+            Ok(Ok(())) => None,
+            Ok(Err(e)) => Some(e.to_string()),
+            Err(_) => Some(format!("the cluster database did not answer within {within:?}")),
+        };
+        *c.not_writable.lock() = answer;
+    }
+
+    /// Why this node should not take calls now: its storage refuses writes, or (in a cluster)
+    /// the log did not take writes at the last probe.
+    pub fn readiness(&self) -> Option<String> {
+        if let Some(e) = self.failure() {
+            return Some(format!("storage failed ({e})"));
+        }
+        self.cluster.as_ref()?.not_writable.lock().clone()
     }
 
     /// Keeps a tenant's record: in a cluster, in the log (then here); else durable in sled.

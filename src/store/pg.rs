@@ -83,6 +83,9 @@ pub struct Head {
     pub version: i64,
 }
 
+/// The advisory lock key the schema is created under (any constant: "loopd" in ASCII).
+const SCHEMA_LOCK: i64 = 0x6c6f6f7064;
+
 const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS loopd_sessions (
     id text PRIMARY KEY,
     tbl bigint GENERATED ALWAYS AS IDENTITY UNIQUE,
@@ -205,6 +208,15 @@ impl PgLog {
         if config.get_connect_timeout().is_none() {
             config.connect_timeout(std::time::Duration::from_secs(5));
         }
+        // Nor may a connection whose server was cut off mid-statement: unacknowledged data for
+        // 5 s closes it (the statement fails UNAVAILABLE), and idle ones are probed by keepalives
+        // (on by default) after 5 s rather than the default 2 hours.
+        if config.get_tcp_user_timeout().is_none() {
+            config.tcp_user_timeout(std::time::Duration::from_secs(5));
+        }
+        if config.get_keepalives_idle() == std::time::Duration::from_secs(2 * 60 * 60) {
+            config.keepalives_idle(std::time::Duration::from_secs(5));
+        }
         let manager = Manager::from_config(config, NoTls, ManagerConfig { recycling_method: RecyclingMethod::Fast });
         let pool = Pool::builder(manager)
             .max_size(max_connections.max(1))
@@ -219,7 +231,10 @@ impl PgLog {
         };
         let log = Self { db: Arc::new(db), writers: Default::default() };
         let client = log.client().await?;
-        client.batch_execute(SCHEMA).await.map_err(pg_error)?;
+        // Nodes starting together would race in CREATE TABLE IF NOT EXISTS (a unique violation in
+        // the catalog): one at a time, under a transaction-scoped advisory lock.
+        let schema = format!("BEGIN; SELECT pg_advisory_xact_lock({SCHEMA_LOCK}); {SCHEMA}; COMMIT");
+        client.batch_execute(&schema).await.map_err(pg_error)?;
         if let Some(why) = log.db.unreplicated.lock().clone() {
             return Err(StoreError::InvalidArgument(why));
         }
@@ -228,6 +243,14 @@ impl PgLog {
 
     async fn client(&self) -> Result<Object, StoreError> {
         self.db.client().await
+    }
+
+    /// Whether the log takes writes now: a connection to a writable primary whose commits wait
+    /// for a synchronous standby (checked again on that connection: settings change live).
+    pub async fn probe(&self) -> Result<(), StoreError> {
+        let client = self.client().await?;
+        self.db.check(&client).await?;
+        self.db.writable()
     }
 
     /// How many times the primary has changed since connecting (see `Db::epoch`).
