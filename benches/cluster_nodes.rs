@@ -34,12 +34,7 @@ async fn node(dir: &Path, url: Option<&str>) -> anyhow::Result<RunningServer> {
     let (model, _) = Model::load(&weights, ModelConfig::default(), tch::Device::Cpu, DType::F32)?;
     let cfg = ServerConfig {
         engine: EngineConfig { warm_up: false, ..Default::default() },
-        cluster: url.map(|u| ClusterConfig {
-            url: u.into(),
-            connections: WRITERS,
-            unreplicated: false,
-            tenant_refresh: std::time::Duration::from_secs(1),
-        }),
+        cluster: url.map(|u| ClusterConfig { connections: WRITERS, ..ClusterConfig::new(u) }),
         ..ServerConfig::on_loopback(dir.to_path_buf())
     };
     RunningServer::start(cfg, model).await

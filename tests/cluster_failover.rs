@@ -24,12 +24,7 @@ type Client = LoopdClient<tonic::transport::Channel>;
 async fn node(dir: &std::path::Path, url: &str) -> RunningServer {
     let cfg = ServerConfig {
         engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
-        cluster: Some(ClusterConfig {
-            url: url.into(),
-            connections: 4,
-            unreplicated: false,
-            tenant_refresh: std::time::Duration::from_secs(1),
-        }),
+        cluster: Some(ClusterConfig { connections: 4, ..ClusterConfig::new(url) }),
         ..ServerConfig::on_loopback(dir.to_path_buf())
     };
     RunningServer::start(cfg, imagenet_model()).await.unwrap()

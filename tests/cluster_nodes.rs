@@ -24,12 +24,7 @@ type Client = LoopdClient<tonic::transport::Channel>;
 async fn node(dir: &std::path::Path, cluster: bool) -> RunningServer {
     let cfg = ServerConfig {
         engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
-        cluster: cluster.then(|| ClusterConfig {
-            url: env("LOOPD_PG_URL"),
-            connections: 8,
-            unreplicated: false,
-            tenant_refresh: std::time::Duration::from_secs(1),
-        }),
+        cluster: cluster.then(|| ClusterConfig { connections: 8, ..ClusterConfig::new(&env("LOOPD_PG_URL")) }),
         ..ServerConfig::on_loopback(dir.to_path_buf())
     };
     RunningServer::start(cfg, imagenet_model()).await.unwrap()
@@ -41,12 +36,7 @@ const ADMIN: &str = "admin-key-for-the-cluster-tests-0123456789";
 async fn keyed_node(dir: &std::path::Path) -> RunningServer {
     let cfg = ServerConfig {
         engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
-        cluster: Some(ClusterConfig {
-            url: env("LOOPD_PG_URL"),
-            connections: 4,
-            unreplicated: false,
-            tenant_refresh: std::time::Duration::from_secs(1),
-        }),
+        cluster: Some(ClusterConfig { connections: 4, ..ClusterConfig::new(&env("LOOPD_PG_URL")) }),
         auth: loopd::auth::AuthConfig { admin_key: Some(ADMIN.into()), ..Default::default() },
         ..ServerConfig::on_loopback(dir.to_path_buf())
     };
@@ -386,4 +376,160 @@ async fn keys_issued_or_revoked_through_one_node_hold_on_every_node() {
     let took = until_status(&http, &format!("{base_a}/sessions"), &key, 401).await;
     assert!(took < Duration::from_secs(3), "A took {took:?} to refuse the revoked key");
     assert_eq!(http.get(format!("{base_a}/sessions")).bearer_auth(&other).send().await.unwrap().status(), 200);
+}
+
+/// A cluster node named `name` for the owners test: members heartbeat every 0.2 s, are gone
+/// after 2 s unheard, and a session the node does not own is dropped after 1 s unused.
+async fn member_node(dir: &std::path::Path, name: &str) -> RunningServer {
+    let cfg = ServerConfig {
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        cluster: Some(ClusterConfig {
+            connections: 4,
+            tenant_refresh: Duration::from_millis(200),
+            node: name.into(),
+            member_ttl: Duration::from_secs(2),
+            evict_idle: Some(Duration::from_secs(1)),
+            ..ClusterConfig::new(&env("LOOPD_PG_URL"))
+        }),
+        ..ServerConfig::on_loopback(dir.to_path_buf())
+    };
+    RunningServer::start(cfg, imagenet_model()).await.unwrap()
+}
+
+/// Every node's `GET /v1/cluster`, by node name.
+async fn views(nodes: &[&RunningServer]) -> Vec<serde_json::Value> {
+    let mut out = Vec::new();
+    for n in nodes {
+        let r = reqwest::get(format!("http://{}/v1/cluster", n.http_addr)).await.unwrap();
+        assert_eq!(r.status(), 200);
+        out.push(r.json().await.unwrap());
+    }
+    out
+}
+
+/// The nodes holding `session` in `views`: (node, owner, frames).
+fn holders(views: &[serde_json::Value], session: &str) -> Vec<(String, bool, u64)> {
+    let mut out = Vec::new();
+    for v in views {
+        for h in v["held"].as_array().unwrap().iter().filter(|h| h["session"] == session) {
+            out.push((v["node"].as_str().unwrap().to_string(), h["owner"] == true, h["frames"].as_u64().unwrap()));
+        }
+    }
+    out.sort();
+    out
+}
+
+/// Polls the nodes' views until `want` holds (within 20 s); the last views otherwise, in the panic.
+async fn until_views(nodes: &[&RunningServer], what: &str, want: impl Fn(&[serde_json::Value]) -> bool) {
+    let t = Instant::now();
+    loop {
+        let now = views(nodes).await;
+        if want(&now) {
+            return;
+        }
+        assert!(t.elapsed() < Duration::from_secs(20), "not within 20 s: {what}; views: {now:#?}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// Owners (issue #17): each session is held warm by two live members before any request for it;
+/// a node that does not own a session drops it once unused; when an owner leaves, the remaining
+/// member loads its sessions without a request; a member that stops heartbeating is gone after
+/// the ttl; and every node answers every session all along (a non-owner loads it: the fallback).
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn sessions_are_held_warm_by_two_live_members() {
+    // Nodes of earlier tests stopped without leaving; their rows would count until the ttl.
+    common::pg::psql("DELETE FROM loopd_members");
+    let dirs: Vec<_> = (0..3).map(|_| tempfile::tempdir().unwrap()).collect();
+    let mut nodes = Vec::new();
+    for (i, d) in dirs.iter().enumerate() {
+        nodes.push(member_node(d.path(), &format!("node-{i}")).await);
+    }
+    let descriptors = corridor_descriptors(&nodes[0], 8).await;
+    let sessions: Vec<String> = (0..6).map(|i| format!("owned-{i}")).collect();
+    // All written through node 0, which owns only some of them.
+    let mut g0 = client(&nodes[0]).await;
+    for (i, id) in sessions.iter().enumerate() {
+        create(&mut g0, id, false).await;
+        for (t, d) in descriptors.iter().take(i + 2).enumerate() {
+            g0.add_frame(descriptor_frame(id, "r0", t as f64, d, None)).await.unwrap();
+        }
+    }
+    let members = |views: &[serde_json::Value], want: &[&str]| {
+        views
+            .iter()
+            .all(|v| v["members"].as_array().unwrap().iter().map(|m| m.as_str().unwrap()).eq(want.iter().copied()))
+    };
+    // Two owners each, both holding every frame; nobody else holds it.
+    let warm = |views: &[serde_json::Value]| {
+        sessions.iter().enumerate().all(|(i, id)| {
+            let h = holders(views, id);
+            h.len() == 2 && h.iter().all(|(_, owner, frames)| *owner && *frames == i as u64 + 2)
+        })
+    };
+    let all = [&nodes[0], &nodes[1], &nodes[2]];
+    until_views(&all, "3 members, each session held by its 2 owners only", |v| {
+        members(v, &["node-0", "node-1", "node-2"]) && warm(v)
+    })
+    .await;
+    let per_node: Vec<usize> = views(&all).await.iter().map(|v| v["held"].as_array().unwrap().len()).collect();
+    assert_eq!(per_node.iter().sum::<usize>(), 12, "6 sessions x 2 owners spread over 3 nodes: {per_node:?}");
+
+    // The fallback: each session answered through a node that does not own it (loaded on
+    // demand, then dropped again once unused).
+    for id in &sessions {
+        let owners: Vec<String> = holders(&views(&all).await, id).into_iter().map(|h| h.0).collect();
+        let other = (0..3).find(|i| !owners.contains(&format!("node-{i}"))).unwrap();
+        let mut g = client(&nodes[other]).await;
+        let best = g.query(query(id, by_descriptor(&descriptors[1]), 1)).await.unwrap().into_inner().matches;
+        assert_eq!(best[0].frame_id, 1, "{id} through node-{other}, not an owner");
+        let h = holders(&views(&all).await, id);
+        assert!(
+            h.contains(&(format!("node-{other}"), false, (h[0].2))),
+            "{id} held by node-{other} after a query: {h:?}"
+        );
+    }
+    until_views(&all, "non-owners dropped the sessions they served", |v| warm(v)).await;
+
+    // An owner leaves (a clean stop): the two left own and hold every session, loaded before any
+    // request.
+    let gone = nodes.remove(1);
+    gone.shutdown().await.unwrap();
+    let left = [&nodes[0], &nodes[1]];
+    until_views(&left, "2 members, both holding every session", |v| members(v, &["node-0", "node-2"]) && warm(v)).await;
+
+    // A member that stops heartbeating ("ghost": a row nobody refreshes) owns some sessions
+    // until the ttl: a node it displaces drops them, yet each stays warm on the other owner and
+    // answered through both; after the ttl both hold every session again.
+    common::pg::psql("INSERT INTO loopd_members (node, seen, since) VALUES ('ghost', now(), now())");
+    until_views(&left, "the ghost counted: sessions it owns held by their one live owner only", |v| {
+        let held: Vec<Vec<(String, bool, u64)>> = sessions.iter().map(|id| holders(v, id)).collect();
+        members(v, &["ghost", "node-0", "node-2"])
+            && held.iter().all(|h| !h.is_empty() && h.iter().all(|(_, owner, _)| *owner))
+            && held.iter().any(|h| h.len() == 1)
+    })
+    .await;
+    for n in left {
+        let mut g = client(n).await;
+        for id in &sessions {
+            let best = g.query(query(id, by_descriptor(&descriptors[0]), 1)).await.unwrap().into_inner().matches;
+            assert_eq!(best[0].frame_id, 0, "{id} answered while the ghost owns it");
+        }
+    }
+    until_views(&left, "the ghost gone after the ttl; both hold every session", |v| {
+        members(v, &["node-0", "node-2"]) && warm(v)
+    })
+    .await;
+    let mut g = client(&nodes[0]).await;
+    for id in &sessions {
+        g.delete_session(pb::DeleteSessionRequest { id: id.clone() }).await.unwrap();
+    }
+    until_views(&left, "deleted sessions dropped everywhere", |v| {
+        v.iter().all(|v| v["held"].as_array().unwrap().is_empty())
+    })
+    .await;
+    for n in nodes {
+        n.shutdown().await.unwrap();
+    }
 }

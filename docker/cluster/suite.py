@@ -373,6 +373,17 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         for c in clients:
             c.close()
 
+    @check("members: each session owned and held warm by two of the three nodes (GET /v1/cluster)")
+    def _():
+        sessions = set(cluster.sql(until("a primary", cluster.leader, 60), "SELECT id FROM loopd_sessions").split())
+
+        def two_owners():
+            views = [cluster.http("GET", "/v1/cluster", service=n, key=ADMIN)[2] for n in NODES]
+            owned = [h["session"] for v in views for h in v["held"] if h["owner"]]
+            return all(v["members"] == [f"{n}:50051" for n in NODES] for v in views) \
+                and sorted(owned) == sorted(list(sessions) * 2)
+        until("two owners per session", two_owners, 20)
+
     @check("query latency through the balancer against a node directly (same session, same queries)")
     def _():
         for target in ("loopd1", "lb"):
@@ -440,6 +451,16 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
             gap = load.gap(killed)
         load.verify(cluster, "T1")
         assert gap < 5, f"writes stalled {gap:.1f} s after a node died"
+        # Its sessions were owned by two of three members; after the member ttl (5 s) the two
+        # left own and hold every session, loaded without a request.
+        sessions = set(cluster.sql(until("a primary", cluster.leader, 60), "SELECT id FROM loopd_sessions").split())
+        survivors = ("loopd1", "loopd3")
+
+        def taken_over():
+            views = [cluster.http("GET", "/v1/cluster", service=n, key=ADMIN)[2] for n in survivors]
+            return all(v["members"] == ["loopd1:50051", "loopd3:50051"]
+                       and {h["session"] for h in v["held"] if h["owner"]} == sessions for v in views)
+        until("loopd1 and loopd3 own and hold every session", taken_over, 20)
         figures.append(("longest write gap after a loopd node is killed, s", f"{gap:.2f}"))
         cluster.compose("start", "loopd2")
         cluster.wait_node("loopd2")

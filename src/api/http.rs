@@ -35,6 +35,7 @@ pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
         .route("/readyz", get(ready))
         .route("/metrics", get(metrics))
         .route("/v1/info", get(info))
+        .route("/v1/cluster", get(cluster))
         .route("/v1/embed", post(embed))
         .route("/v1/sessions", post(create_session).get(list_sessions))
         .route("/v1/sessions/{id}", get(get_session).delete(delete_session))
@@ -111,6 +112,14 @@ async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
         max_batch: e.config().max_batch,
         max_image_bytes: i.limits.max_bytes,
         version: env!("CARGO_PKG_VERSION"),
+    })
+}
+
+/// A cluster node's members and the sessions it holds (admin key: it names every tenant's
+/// sessions).
+async fn cluster(State(s): State<Arc<AppState>>) -> Result<Json<crate::store::ClusterView>, ApiError> {
+    s.service.store.cluster_view().map(Json).ok_or_else(|| {
+        ApiError::NotFound("this server keeps its sessions in sled, not in a cluster (serve --cluster)".into())
     })
 }
 
@@ -476,7 +485,7 @@ async fn authenticate(
 fn admit(auth: &Auth, req: &Request) -> Result<Caller, ApiError> {
     let path = req.uri().path();
     let tenants = path.starts_with("/v1/tenants");
-    let admin_only = path == "/metrics" || tenants;
+    let admin_only = path == "/metrics" || path == "/v1/cluster" || tenants;
     let in_url = req.uri().query().is_some_and(|q| {
         q.split('&').any(|kv| {
             let name = kv.split('=').next().unwrap_or("").to_ascii_lowercase();

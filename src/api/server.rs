@@ -11,7 +11,7 @@ use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
 use crate::pb;
 use crate::store::pg::Replication;
-use crate::store::{SearchConfig, Store};
+use crate::store::{Membership, SearchConfig, Store};
 use crate::verify::pool::VerifyConfig;
 use anyhow::{Context, Result};
 use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
@@ -63,8 +63,45 @@ pub struct ClusterConfig {
     /// Trials only: accept a primary whose commits do not wait for a synchronous standby.
     pub unreplicated: bool,
     /// How often the node reads the tenants again (keys issued or revoked through other nodes
-    /// take effect here within this).
+    /// take effect here within this), probes the log, and heartbeats as a member.
     pub tenant_refresh: Duration,
+    /// This node's name among the members (empty: the host's name and the gRPC port).
+    pub node: String,
+    /// Nodes that hold each session warm (see `store/owners.rs`).
+    pub owners: usize,
+    /// A member not seen for this long is gone.
+    pub member_ttl: Duration,
+    /// A session this node does not own is dropped once unused for this long (None: never).
+    pub evict_idle: Option<Duration>,
+}
+
+impl ClusterConfig {
+    /// A node of the cluster whose log is at `url`, with the defaults of `loopd serve`.
+    pub fn new(url: &str) -> Self {
+        Self {
+            url: url.into(),
+            connections: 16,
+            unreplicated: false,
+            tenant_refresh: Duration::from_secs(1),
+            node: String::new(),
+            owners: 2,
+            member_ttl: Duration::from_secs(5),
+            evict_idle: Some(Duration::from_secs(600)),
+        }
+    }
+
+    /// The node's membership; `grpc` is the address it serves on.
+    fn membership(&self, grpc: SocketAddr) -> Membership {
+        let node = if self.node.is_empty() {
+            // The kernel's host name (a container's id under Docker); the port tells apart
+            // nodes on one host.
+            let host = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+            format!("{}:{}", host.trim(), grpc.port())
+        } else {
+            self.node.clone()
+        };
+        Membership { node, owners: self.owners.max(1), ttl: self.member_ttl, evict_idle: self.evict_idle }
+    }
 }
 
 /// What one client connection may hold (see `conn.rs`).
@@ -125,6 +162,8 @@ pub struct RunningServer {
     shutdown: tokio::sync::watch::Sender<bool>,
     grace: std::time::Duration,
     tasks: Vec<tokio::task::JoinHandle<Result<()>>>,
+    /// A cluster node's membership task (it leaves the members as it ends).
+    members: Option<tokio::task::JoinHandle<()>>,
 }
 
 /// A cluster node following the log every `every` until shutdown: its tenants read again, and
@@ -148,6 +187,24 @@ async fn follow_cluster(
         }
         store.probe_log(every.max(Duration::from_secs(2))).await;
     }
+}
+
+/// A cluster node's membership, every `every` until shutdown (a task of its own: loading an
+/// owned session can take seconds, which must not delay readiness). It leaves the members as it
+/// stops, so the others own its sessions at once.
+async fn follow_members(store: Arc<Store>, every: Duration, mut shutdown: tokio::sync::watch::Receiver<bool>) {
+    let mut tick = tokio::time::interval(every.max(Duration::from_millis(10)));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = shutdown.changed() => break,
+        }
+        if let Err(e) = store.follow_members().await {
+            tracing::debug!(error = %e, "cluster membership not followed this round");
+        }
+    }
+    let _ = tokio::time::timeout(Duration::from_secs(2), store.leave_members()).await;
 }
 
 impl RunningServer {
@@ -214,6 +271,13 @@ impl RunningServer {
             .await
             .with_context(|| format!("binding gRPC {}", cfg.grpc_addr))?;
         let (http_addr, grpc_addr) = (http.local_addr()?, grpc.local_addr()?);
+        let mut members = None;
+        if let Some(c) = &cfg.cluster {
+            let me = c.membership(grpc_addr);
+            tracing::info!(node = %me.node, owners = me.owners, "joining the cluster's members");
+            service.store.join_members(me);
+            members = Some(tokio::spawn(follow_members(service.store.clone(), c.tenant_refresh, rx.clone())));
+        }
 
         let state = Arc::new(AppState { service: service.clone(), auth: auth.clone() });
         let app = router(state, cfg.max_body_bytes).layer(tower_http::timeout::TimeoutLayer::with_status_code(
@@ -266,6 +330,7 @@ impl RunningServer {
             shutdown,
             grace: cfg.shutdown_grace,
             tasks: vec![http_task, grpc_task, watcher],
+            members,
         })
     }
 
@@ -286,6 +351,9 @@ impl RunningServer {
                     t.abort();
                 }
             }
+        }
+        if let Some(m) = self.members {
+            let _ = tokio::time::timeout(Duration::from_secs(3), m).await;
         }
         self.service.store.flush()?;
         Ok(())

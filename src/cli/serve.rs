@@ -130,6 +130,19 @@ pub struct ServeArgs {
     /// node take effect here within this) and checks that the log takes writes (readiness).
     #[arg(long, env = "LOOPD_CLUSTER_TENANT_REFRESH_SECS", default_value_t = 1.0)]
     pub cluster_tenant_refresh_secs: f64,
+    /// This node's name among the cluster's members, unique (default: host name:gRPC port).
+    #[arg(long, env = "LOOPD_CLUSTER_NODE", default_value = "")]
+    pub cluster_node: String,
+    /// Nodes that hold each session's index warm (rendezvous hashing over the live members).
+    #[arg(long, env = "LOOPD_CLUSTER_OWNERS", default_value_t = 2)]
+    pub cluster_owners: usize,
+    /// A member not heard from for this long is gone (its sessions move to the next owner).
+    #[arg(long, env = "LOOPD_CLUSTER_MEMBER_TTL_SECS", default_value_t = 5.0)]
+    pub cluster_member_ttl_secs: f64,
+    /// A session this node does not own is dropped from memory once unused for this long
+    /// (0: kept until deleted).
+    #[arg(long, env = "LOOPD_CLUSTER_EVICT_IDLE_SECS", default_value_t = 600.0)]
+    pub cluster_evict_idle_secs: f64,
 }
 
 impl ServeArgs {
@@ -204,6 +217,11 @@ impl ServeArgs {
                 connections: self.cluster_connections.clamp(1, 1024),
                 unreplicated: self.cluster_unreplicated,
                 tenant_refresh: Duration::from_secs_f64(self.cluster_tenant_refresh_secs.clamp(0.01, 3600.0)),
+                node: self.cluster_node.clone(),
+                owners: self.cluster_owners.clamp(1, 64),
+                member_ttl: Duration::from_secs_f64(self.cluster_member_ttl_secs.clamp(0.1, 3600.0)),
+                evict_idle: (self.cluster_evict_idle_secs > 0.0)
+                    .then(|| Duration::from_secs_f64(self.cluster_evict_idle_secs.min(30.0 * 86400.0))),
             }),
             connections: ConnectionConfig {
                 header_timeout: Duration::from_secs_f64(self.header_timeout_secs.clamp(0.1, 3600.0)),

@@ -22,6 +22,8 @@ pub(super) struct Cluster {
     pub(super) log: PgLog,
     /// Why the log did not take writes at the last probe (`Store::probe_log`); None when it did.
     not_writable: parking_lot::Mutex<Option<String>>,
+    /// This node's membership and the live members (`owners.rs`).
+    pub(super) members: super::owners::Members,
 }
 
 tokio::task_local! {
@@ -58,7 +60,11 @@ impl Store {
         let dir = dir.to_path_buf();
         // sled opens and drops its cache with blocking I/O.
         let store = tokio::task::spawn_blocking(move || {
-            Self::open_dir(&dir, search, Some(Cluster { log, not_writable: Default::default() }))
+            Self::open_dir(
+                &dir,
+                search,
+                Some(Cluster { log, not_writable: Default::default(), members: Default::default() }),
+            )
         })
         .await
         .map_err(|e| StoreError::Storage(format!("opening the cache failed: {e}")))??;
@@ -126,6 +132,7 @@ impl Store {
         };
         let version = head.version;
         let s = self.cached(c, head)?;
+        Self::touch(&s);
         self.catch_up(c, &s, version).await?;
         Ok(s)
     }
@@ -231,7 +238,7 @@ impl Store {
     }
 
     /// Applies the log's frames after what this node holds, in `seq` order, until `version`.
-    async fn catch_up(&self, c: &Cluster, s: &Arc<Session>, version: i64) -> Result<(), StoreError> {
+    pub(super) async fn catch_up(&self, c: &Cluster, s: &Arc<Session>, version: i64) -> Result<(), StoreError> {
         let mut applied = s.applied.lock().await;
         if *applied >= version {
             return Ok(());
@@ -261,7 +268,7 @@ impl Store {
     /// The session held here for the log's `head`: the one already cached, or a new, empty one
     /// in place of a stale one (deleted and created again through another node, or read from a
     /// primary that has since been replaced: it may hold frames the new one lacks).
-    fn cached(&self, c: &Cluster, head: Head) -> Result<Arc<Session>, StoreError> {
+    pub(super) fn cached(&self, c: &Cluster, head: Head) -> Result<Arc<Session>, StoreError> {
         let epoch = c.log.epoch();
         let current = |store: &Self| {
             let held = store.sessions.read().get(&head.meta.id).cloned();

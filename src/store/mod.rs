@@ -6,7 +6,10 @@ pub mod durability;
 pub mod index;
 pub mod kernels;
 pub mod loops;
+mod owners;
 pub mod pg;
+mod pg_members;
+pub use owners::{ClusterView, HeldSession, Membership};
 pub mod query;
 pub mod record;
 mod records;
@@ -123,6 +126,9 @@ pub struct Session {
     applied: tokio::sync::Mutex<i64>,
     /// In a cluster: the log's primary epoch it was loaded under (see `PgLog::epoch`).
     epoch: u64,
+    /// In a cluster: when a request last used it (ms since the Unix epoch), so that a node evicts
+    /// only sessions it neither owns nor serves (`owners.rs`).
+    used: AtomicU64,
 }
 
 pub struct Store {
@@ -342,16 +348,24 @@ impl Store {
 
     /// As [`Store::remove_local`], the admin lock held by the caller.
     fn remove_locked(&self, id: &str) -> Result<bool, StoreError> {
-        let disk = self.disk()?;
+        // Nothing is taken out of memory while the database is away (a reopen).
+        drop(self.disk()?);
         let removed = self.sessions.write().remove(id);
         let Some(removed) = removed else { return Ok(false) };
+        self.drop_trees(id, &removed)?;
+        Ok(true)
+    }
+
+    /// Drops a session taken out of `sessions` from disk (the admin lock held by the caller).
+    fn drop_trees(&self, id: &str, removed: &Session) -> Result<(), StoreError> {
+        let disk = self.disk()?;
         // Its handles go first: sled drops a tree's contents once no handle holds it.
         removed.trees.write().take();
         self.note(disk.sessions.remove(id.as_bytes()))?;
         for tree in trees_of(id) {
             self.note(disk.db.drop_tree(tree))?;
         }
-        Ok(true)
+        Ok(())
     }
 
     /// Adds frames; acknowledged (returns their ids) once they are on disk. A frame becomes
@@ -694,6 +708,7 @@ impl Session {
             tbl: 0,
             applied: tokio::sync::Mutex::new(0),
             epoch: 0,
+            used: AtomicU64::new(owners::now_ms()),
         })
     }
 

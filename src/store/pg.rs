@@ -93,7 +93,8 @@ const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS loopd_sessions (
     version bigint NOT NULL DEFAULT 0,
     next_frame_id bigint NOT NULL DEFAULT 0
 );
-CREATE TABLE IF NOT EXISTS loopd_tenants (name text PRIMARY KEY, record jsonb NOT NULL)";
+CREATE TABLE IF NOT EXISTS loopd_tenants (name text PRIMARY KEY, record jsonb NOT NULL);
+CREATE TABLE IF NOT EXISTS loopd_members (node text PRIMARY KEY, seen timestamptz NOT NULL, since timestamptz NOT NULL)";
 
 /// Transient: the database cannot be reached or is switching primaries; retry later. A commit
 /// whose answer was lost may or may not have happened: frames with ids make the retry exact
@@ -102,7 +103,7 @@ fn unavailable(e: &tokio_postgres::Error) -> StoreError {
     StoreError::Unavailable(format!("the cluster database is unavailable ({e}); retry later"))
 }
 
-fn pg_error(e: tokio_postgres::Error) -> StoreError {
+pub(super) fn pg_error(e: tokio_postgres::Error) -> StoreError {
     match e.as_db_error() {
         // A server that is read-only (a standby), shutting down, crashed, starting or out of
         // connections: another primary or a retry will answer.
@@ -241,7 +242,7 @@ impl PgLog {
         Ok(log)
     }
 
-    async fn client(&self) -> Result<Object, StoreError> {
+    pub(super) async fn client(&self) -> Result<Object, StoreError> {
         self.db.client().await
     }
 
