@@ -166,6 +166,20 @@ pub struct RunningServer {
     members: Option<tokio::task::JoinHandle<()>>,
 }
 
+/// Waits for the next of `tick`; false once the server shuts down.
+async fn next_round(tick: &mut tokio::time::Interval, shutdown: &mut tokio::sync::watch::Receiver<bool>) -> bool {
+    tokio::select! {
+        _ = tick.tick() => true,
+        _ = shutdown.changed() => false,
+    }
+}
+
+fn rounds(every: Duration) -> tokio::time::Interval {
+    let mut tick = tokio::time::interval(every.max(Duration::from_millis(10)));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    tick
+}
+
 /// A cluster node following the log every `every` until shutdown: its tenants read again, and
 /// whether the log takes writes (readiness: /readyz and gRPC health).
 async fn follow_cluster(
@@ -174,13 +188,8 @@ async fn follow_cluster(
     every: Duration,
     mut shutdown: tokio::sync::watch::Receiver<bool>,
 ) {
-    let mut tick = tokio::time::interval(every.max(Duration::from_millis(10)));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tokio::select! {
-            _ = tick.tick() => {}
-            _ = shutdown.changed() => return,
-        }
+    let mut tick = rounds(every);
+    while next_round(&mut tick, &mut shutdown).await {
         match store.tenants_fresh().await {
             Ok(records) => auth.sync(records),
             Err(e) => tracing::debug!(error = %e, "tenants not read again from the cluster log"),
@@ -193,13 +202,8 @@ async fn follow_cluster(
 /// owned session can take seconds, which must not delay readiness). It leaves the members as it
 /// stops, so the others own its sessions at once.
 async fn follow_members(store: Arc<Store>, every: Duration, mut shutdown: tokio::sync::watch::Receiver<bool>) {
-    let mut tick = tokio::time::interval(every.max(Duration::from_millis(10)));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tokio::select! {
-            _ = tick.tick() => {}
-            _ = shutdown.changed() => break,
-        }
+    let mut tick = rounds(every);
+    while next_round(&mut tick, &mut shutdown).await {
         if let Err(e) = store.follow_members().await {
             tracing::debug!(error = %e, "cluster membership not followed this round");
         }
