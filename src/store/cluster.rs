@@ -141,13 +141,7 @@ impl Store {
     pub async fn list_fresh(&self) -> Result<Vec<SessionInfo>, StoreError> {
         let Some(c) = &self.cluster else { return Ok(self.list()) };
         let heads = c.log.heads().await?;
-        let gone: Vec<String> = {
-            let held = self.sessions.read();
-            held.keys().filter(|id| !heads.iter().any(|h| &h.meta.id == *id)).cloned().collect()
-        };
-        for id in gone {
-            self.remove_local(&id)?;
-        }
+        self.drop_deleted(&heads)?;
         for head in heads {
             let version = head.version;
             let s = self.cached(c, head)?;
@@ -158,6 +152,18 @@ impl Store {
             }
         }
         Ok(self.list())
+    }
+
+    /// Forgets the sessions held here that the log's `heads` lack (deleted through another node).
+    pub(super) fn drop_deleted(&self, heads: &[Head]) -> Result<(), StoreError> {
+        let gone: Vec<String> = {
+            let held = self.sessions.read();
+            held.keys().filter(|id| !heads.iter().any(|h| &h.meta.id == *id)).cloned().collect()
+        };
+        for id in gone {
+            self.remove_local(&id)?;
+        }
+        Ok(())
     }
 
     /// In a cluster, this node's copy of a session's kept loops becomes the log's (before a

@@ -95,16 +95,11 @@ impl Store {
                 Err(e) => tracing::warn!(session = %id, error = %e, "an owned session not brought up to date"),
             }
         }
-        let held: Vec<(String, Arc<super::Session>)> =
-            self.sessions.read().iter().map(|(id, s)| (id.clone(), s.clone())).collect();
-        for (id, s) in held {
-            if !heads.iter().any(|h| h.meta.id == id) {
-                self.remove_local(&id)?; // deleted through another node
-            } else if !owned(&id) {
-                if let Some(idle) = me.evict_idle {
-                    drop(s);
-                    self.evict_if_idle(&id, idle)?;
-                }
+        self.drop_deleted(&heads)?;
+        if let Some(idle) = me.evict_idle {
+            let held: Vec<String> = self.sessions.read().keys().cloned().collect();
+            for id in held.iter().filter(|id| !owned(id)) {
+                self.evict_if_idle(id, idle)?;
             }
         }
         Ok(())
