@@ -381,7 +381,13 @@ async fn keys_issued_or_revoked_through_one_node_hold_on_every_node() {
 /// A cluster node named `name` for the owners test: members heartbeat every 0.2 s, are gone
 /// after 2 s unheard, and a session the node does not own is dropped after 1 s unused.
 async fn member_node(dir: &std::path::Path, name: &str) -> RunningServer {
+    member_node_keyed(dir, name, None).await
+}
+
+/// As [`member_node`], with keys required when `admin` is set.
+async fn member_node_keyed(dir: &std::path::Path, name: &str, admin: Option<&str>) -> RunningServer {
     let cfg = ServerConfig {
+        auth: loopd::auth::AuthConfig { admin_key: admin.map(String::from), ..Default::default() },
         engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
         cluster: Some(ClusterConfig {
             connections: 4,
@@ -400,7 +406,9 @@ async fn member_node(dir: &std::path::Path, name: &str) -> RunningServer {
 async fn views(nodes: &[&RunningServer]) -> Vec<serde_json::Value> {
     let mut out = Vec::new();
     for n in nodes {
-        let r = reqwest::get(format!("http://{}/v1/cluster", n.http_addr)).await.unwrap();
+        // The admin key (ignored by nodes that require no keys).
+        let r = reqwest::Client::new().get(format!("http://{}/v1/cluster", n.http_addr)).bearer_auth(ADMIN);
+        let r = r.send().await.unwrap();
         assert_eq!(r.status(), 200);
         out.push(r.json().await.unwrap());
     }
@@ -530,6 +538,162 @@ async fn sessions_are_held_warm_by_two_live_members() {
     })
     .await;
     for n in nodes {
+        n.shutdown().await.unwrap();
+    }
+}
+
+/// A tenant's frame limit counts its frames on every node (issue #17): a node that never loaded
+/// one of the tenant's sessions still counts its frames, from the log.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn a_tenants_frame_limit_counts_its_frames_on_every_node() {
+    let _forget = ForgetTenants;
+    let dirs: Vec<_> = (0..3).map(|_| tempfile::tempdir().unwrap()).collect();
+    let mut nodes = Vec::new();
+    for (i, d) in dirs.iter().enumerate() {
+        nodes.push(member_node_keyed(d.path(), &format!("limit-{i}"), Some(ADMIN)).await);
+    }
+    // Nodes of earlier tests that stopped without leaving (these three heartbeat again at once).
+    common::pg::psql("DELETE FROM loopd_members");
+    let http = reqwest::Client::new();
+    let base = |n: &RunningServer| format!("http://{}/v1", n.http_addr);
+    let r = http.post(format!("{}/tenants", base(&nodes[0]))).bearer_auth(ADMIN);
+    let r = r.json(&serde_json::json!({ "name": "small", "limits": { "max_frames": 3 } })).send().await.unwrap();
+    assert_eq!(r.status(), 201);
+    let key = r.json::<serde_json::Value>().await.unwrap()["key"].as_str().unwrap().to_string();
+    for n in &nodes {
+        until_status(&http, &format!("{}/sessions", base(n)), &key, 200).await;
+    }
+    let dim = http.get(format!("{}/info", base(&nodes[0]))).bearer_auth(&key).send().await.unwrap();
+    let dim = dim.json::<serde_json::Value>().await.unwrap()["dim"].as_u64().unwrap() as usize;
+    let post = |n: &RunningServer, path: &str, body: serde_json::Value| {
+        http.post(format!("{}{path}", base(n))).bearer_auth(&key).json(&body).send()
+    };
+    let frame =
+        |t: usize| serde_json::json!({ "robot_id": "r", "timestamp": t, "descriptor": vec![t as f32 + 1.0; dim] });
+    // "m1" gets 2 frames through one of its owners; the node that does not own it never loads it.
+    assert_eq!(post(&nodes[0], "/sessions", serde_json::json!({ "id": "m1" })).await.unwrap().status(), 201);
+    let all: Vec<&RunningServer> = nodes.iter().collect();
+    until_views(&all, "small/m1 held by its 2 owners", |v| holders(v, "small/m1").len() == 2).await;
+    let owners: Vec<String> = holders(&views(&all).await, "small/m1").into_iter().map(|h| h.0).collect();
+    let (owner, other) = (
+        (0..3).find(|i| owners.contains(&format!("limit-{i}"))).unwrap(),
+        (0..3).find(|i| !owners.contains(&format!("limit-{i}"))).unwrap(),
+    );
+    for t in 0..2 {
+        assert_eq!(post(&nodes[owner], "/sessions/m1/frames", frame(t)).await.unwrap().status(), 201);
+    }
+    // Through the other node, into another session: one more fits, the next is refused.
+    let x = &nodes[other];
+    assert_eq!(post(x, "/sessions", serde_json::json!({ "id": "m2" })).await.unwrap().status(), 201);
+    assert_eq!(post(x, "/sessions/m2/frames", frame(2)).await.unwrap().status(), 201);
+    assert!(holders(&views(&all).await, "small/m1").iter().all(|h| h.0 != format!("limit-{other}")));
+    let r = post(x, "/sessions/m2/frames", frame(3)).await.unwrap();
+    let status = r.status();
+    let body: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(status, 429, "limit-{other} took a 4th frame for a tenant limited to 3: {body}");
+    assert!(body["error"].as_str().unwrap().contains("stores 3 frames"), "{body}");
+    for id in ["m1", "m2"] {
+        let r = http.delete(format!("{}/sessions/{id}", base(x))).bearer_auth(&key).send().await.unwrap();
+        assert_eq!(r.status(), 204);
+    }
+    for n in nodes {
+        n.shutdown().await.unwrap();
+    }
+}
+
+/// Posts the ten desk frames as a sequence job into `session` through `node`; the job's id.
+async fn desk_job(http: &reqwest::Client, node: &RunningServer, session: &str) -> String {
+    let url = format!("http://{}/v1/sessions", node.http_addr);
+    let r = http.post(&url).json(&serde_json::json!({ "id": session })).send().await.unwrap();
+    assert!(r.status() == 201 || r.status() == 409, "{}", r.status());
+    let mut form = reqwest::multipart::Form::new().text("order", "name").text("min_score", "0.8");
+    for i in 1..=10 {
+        let image = std::fs::read(data(&format!("slambook2-ch11/{i}.png"))).unwrap();
+        form = form.part("image", reqwest::multipart::Part::bytes(image).file_name(format!("{i}.png")));
+    }
+    let r = http.post(format!("{url}/{session}/sequences")).multipart(form).send().await.unwrap();
+    assert_eq!(r.status(), 202);
+    r.json::<serde_json::Value>().await.unwrap()["job_id"].as_str().unwrap().to_string()
+}
+
+async fn job_status(http: &reqwest::Client, node: &RunningServer, job: &str) -> (u16, serde_json::Value) {
+    let r = http.get(format!("http://{}/v1/jobs/{job}", node.http_addr)).send().await.unwrap();
+    (r.status().as_u16(), r.json().await.unwrap_or_default())
+}
+
+/// A job's record as a node that died mid-job leaves it in the log.
+fn leftover_job(id: &str, node: &str) {
+    let record = serde_json::json!({ "job_id": id, "session_id": "seq-a", "state": "running", "total": 10,
+                                     "done": 4, "loops": [], "errors": [] });
+    common::pg::psql(&format!(
+        "INSERT INTO loopd_jobs (id, n, node, record) VALUES ('{id}', 0, '{node}', '{record}') \
+         ON CONFLICT (id) DO UPDATE SET node = EXCLUDED.node, record = EXCLUDED.record"
+    ));
+}
+
+/// Sequence jobs in the log (issue #17): a job started through one node is polled through any
+/// (running while its node runs it, then its loops); two nodes never give the same job id; a job
+/// whose node is gone, or whose node started again, reads as interrupted, and a node that starts
+/// again marks its earlier run's jobs interrupted in the log.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn sequence_jobs_are_answered_through_every_node() {
+    let dirs: Vec<_> = (0..3).map(|_| tempfile::tempdir().unwrap()).collect();
+    let a = member_node(dirs[0].path(), "jobs-a").await;
+    let b = member_node(dirs[1].path(), "jobs-b").await;
+    common::pg::psql("DELETE FROM loopd_members");
+    let http = reqwest::Client::new();
+    let ja = desk_job(&http, &a, "seq-a").await;
+    let jb = desk_job(&http, &b, "seq-b").await;
+    assert_ne!(ja, jb, "two nodes gave the same job id");
+    // Through the other node at once: its node runs it.
+    let (code, first) = job_status(&http, &b, &ja).await;
+    assert_eq!(code, 200, "{first}");
+    assert!(first["state"] == "running" || first["state"] == "done", "{first}");
+    let t = Instant::now();
+    let done = loop {
+        let (_, st) = job_status(&http, &b, &ja).await;
+        if st["state"] != "running" {
+            break st;
+        }
+        assert!(t.elapsed() < Duration::from_secs(120), "job {ja} still running through B: {st}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    assert_eq!(done["state"], "done", "{done}");
+    assert_eq!(done["done"], 10);
+    let best = done["loops"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .max_by(|x, y| x["score"].as_f64().partial_cmp(&y["score"].as_f64()).unwrap())
+        .cloned()
+        .unwrap_or_default();
+    assert_eq!((best["query_name"].as_str(), best["match_name"].as_str()), (Some("10.png"), Some("1.png")), "{done}");
+    assert_eq!(job_status(&http, &a, &ja).await.1, done, "A (which ran it) and B answer the same status");
+    assert_eq!(job_status(&http, &a, "job-999999999").await.0, 404);
+
+    // Left running by a node that is no member, or by this very node before it started again.
+    leftover_job("job-ghost", "ghost");
+    leftover_job("job-earlier-b", "jobs-b");
+    for (job, node) in [("job-ghost", &a), ("job-ghost", &b), ("job-earlier-b", &b)] {
+        let (code, st) = job_status(&http, node, job).await;
+        assert_eq!((code, st["state"].as_str(), st["done"].as_u64()), (200, Some("interrupted"), Some(4)), "{job}");
+    }
+    // Through another member, jobs-b's record says running: jobs-b is live, so it is believed.
+    assert_eq!(job_status(&http, &a, "job-earlier-b").await.1["state"], "running");
+    // A node started again under its name marks them interrupted in the log, for every node.
+    leftover_job("job-earlier-c", "jobs-c");
+    let c = member_node(dirs[2].path(), "jobs-c").await;
+    let state = common::pg::psql("SELECT record->>'state' FROM loopd_jobs WHERE id = 'job-earlier-c'");
+    assert_eq!(state, "interrupted");
+    common::pg::psql("DELETE FROM loopd_jobs WHERE id IN ('job-ghost', 'job-earlier-b', 'job-earlier-c')");
+    // The next test counts every session's owners.
+    for id in ["seq-a", "seq-b"] {
+        let r = http.delete(format!("http://{}/v1/sessions/{id}", c.http_addr)).send().await.unwrap();
+        assert_eq!(r.status(), 204);
+    }
+    for n in [a, b, c] {
         n.shutdown().await.unwrap();
     }
 }

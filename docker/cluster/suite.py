@@ -3,9 +3,11 @@ HAProxy in containers (docker/cluster/compose.yaml), with the faults a fleet mee
 load of real descriptors (corridor, embedded once by the cluster). After every fault it asserts:
 every acknowledged frame is stored exactly once and survives; errors come only for calls that were
 never acknowledged; never two writable primaries; no answer holds a frame missing afterwards.
-Run by docker/cluster/test; prints one line per check, then a table of what it measured."""
+Run by docker/cluster/test; prints one line per check, then a table of what it measured.
+`suite.py T2 T4` runs the cluster's start and the embedding, then only the checks named (CHECKS)."""
 from __future__ import annotations
 
+import io
 import json
 import os
 import pathlib
@@ -13,6 +15,7 @@ import random
 import statistics
 import subprocess
 import sys
+import tarfile
 import tempfile
 import threading
 import time
@@ -32,6 +35,9 @@ PG = ("pg1", "pg2", "pg3")
 NODES = ("loopd1", "loopd2", "loopd3")
 PATRONI = ["patronictl", "-c", "/etc/loopd-cluster/patroni.yml"]
 figures: list[tuple[str, str]] = []
+# The checks that can be run alone (the start and the embedding always run: the rest needs them).
+CHECKS = ("T6", "T5", "members", "jobs", "latency", "throughput", "T1", "T3", "T2", "T4", "primary", "robot")
+selected: set[str] = set()
 
 
 def sh(*args, check=True, env=None, timeout=120) -> str:
@@ -41,8 +47,11 @@ def sh(*args, check=True, env=None, timeout=120) -> str:
     return (r.stdout or "").strip()
 
 
-def check(name):
+def check(name, key: str | None = None):
     def run(f):
+        if key and selected and key not in selected:
+            print(f"skip {name}", flush=True)
+            return
         start = time.monotonic()
         f()
         print(f"ok   {name} ({time.monotonic() - start:.1f} s)", flush=True)
@@ -277,6 +286,10 @@ class Load:
 
 
 def main() -> None:
+    unknown = set(sys.argv[1:]) - set(CHECKS)
+    if unknown:
+        sys.exit(f"unknown checks {sorted(unknown)}; the checks are {', '.join(CHECKS)}")
+    selected.update(sys.argv[1:])
     with tempfile.TemporaryDirectory(prefix="loopd-cluster-") as work:
         os.chmod(work, 0o755)
         cluster = Cluster(pathlib.Path(work))
@@ -347,7 +360,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         served = {k: int(v) for k, v in cluster.balanced("stot").items() if k.startswith("http_ready/")}
         assert sum(1 for v in served.values() if v > 0) == 3, f"calls per node: {served}"
 
-    @check("T6 one sequence, cluster (through the balancer) and sled loopd: identical top-10 ids, order, scores")
+    @check("T6 one sequence, cluster (through the balancer) and sled loopd: identical top-10 ids, order, scores", "T6")
     def _():
         refs, queries = descriptors[:len(descriptors) // 2], descriptors[len(descriptors) // 2:]
         answers = {}
@@ -361,7 +374,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         assert answers["lb"] == answers["sled"], "the cluster ranks differently from sled"
         assert all(len(a) > 0 for a in answers["lb"])
 
-    @check("T5 read-after-ack: write through node A, read and query through node B, 1,000 times")
+    @check("T5 read-after-ack: write through node A, read and query through node B, 1,000 times", "T5")
     def _():
         with cluster.grpc("loopd1", retry=None) as c:
             c.create_session("raa")
@@ -370,7 +383,10 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
             a, b = i % 3, (i + 1) % 3
             d = descriptors[i % len(descriptors)]
             clients[a].add_frame("raa", "r", Frame(descriptor=d, frame_id=i, timestamp=float(i)))
-            status, _, frame = cluster.http("GET", f"/v1/sessions/raa/frames/{i}", service=NODES[b])
+            try:
+                status, _, frame = cluster.http("GET", f"/v1/sessions/raa/frames/{i}", service=NODES[b])
+            except urllib.error.HTTPError as e:
+                raise AssertionError(f"{NODES[b]} answered {e.code} for frame {i}, just acknowledged by {NODES[a]}")
             assert status == 200 and frame["frame_id"] == i, frame
             top = clients[b].query("raa", "q", descriptor=d, options=None)
             assert i in {m.frame_id for m in top if m.score > 0.9999} or len(top) >= 5 and top[4].score > 0.9999, \
@@ -378,7 +394,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         for c in clients:
             c.close()
 
-    @check("members: each session owned and held warm by two of the three nodes (GET /v1/cluster)")
+    @check("members: each session owned and held warm by two of the three nodes (GET /v1/cluster)", "members")
     def _():
         sessions = set(cluster.sql(until("a primary", cluster.leader, 60), "SELECT id FROM loopd_sessions").split())
 
@@ -390,7 +406,28 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
             return True
         until("two owners per session", two_owners, 20)
 
-    @check("query latency through the balancer against a node directly (same session, same queries)")
+    @check("a sequence job started through the balancer is polled through it, and every node answers for it", "jobs")
+    def _():
+        cluster.http("POST", "/v1/sessions", {"id": "desk-job"})
+        tar = io.BytesIO()
+        with tarfile.open(fileobj=tar, mode="w") as t:
+            for i in range(1, 11):
+                t.add(DATA / f"slambook2-ch11/{i}.png", arcname=f"{i}.png")
+        request = urllib.request.Request(
+            f"http://{cluster.addr('lb', 8080)}/v1/sessions/desk-job/sequences", data=tar.getvalue(),
+            headers={"Authorization": f"Bearer {cluster.key}", "Content-Type": "application/octet-stream"})
+        with urllib.request.urlopen(request, timeout=60) as r:
+            job = json.load(r)["job_id"]
+        # Each poll may reach another node (HAProxy balances per call).
+        status = until(f"{job} done", lambda: (lambda st: st if st["state"] != "running" else None)(
+            cluster.http("GET", f"/v1/jobs/{job}")[2]), 120)
+        assert status["state"] == "done" and status["done"] == 10 and not status["errors"], status
+        tenth = [l["match_name"] for l in status["loops"] if l["query_name"] == "10.png"]
+        assert tenth == ["1.png"], status["loops"]
+        for node in NODES:
+            assert cluster.http("GET", f"/v1/jobs/{job}", service=node)[2] == status, node
+
+    @check("query latency through the balancer against a node directly (same session, same queries)", "latency")
     def _():
         for target in ("loopd1", "lb"):
             with cluster.grpc(target, retry=None) as c:
@@ -403,7 +440,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
             figures.append((f"query p50 / p99 ms, 1,000 frames, {'through HAProxy' if target == 'lb' else 'one node directly'}",
                             f"{statistics.median(times):.2f} / {times[int(0.99 * len(times))]:.2f}"))
 
-    @check("throughput side by side: durable frames/s and embedding, the cluster against one node")
+    @check("throughput side by side: durable frames/s and embedding, the cluster against one node", "throughput")
     def _():
         if not FIGURES:
             print("     skipped (LOOPD_CLUSTER_FIGURES=1 measures it)", flush=True)
@@ -448,7 +485,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         figures.append(("images embedded/s, 3 clients: 3 nodes through HAProxy / 1 node (CPU, one 2-core machine)",
                         f"{three:.2f} / {one:.2f} ({three / one:.2f})"))
 
-    @check("T1 a loopd node killed (SIGKILL) under load: the balancer routes around it")
+    @check("T1 a loopd node killed (SIGKILL) under load: the balancer routes around it", "T1")
     def _():
         with cluster.grpc() as c:
             c.create_session("t1")
@@ -477,7 +514,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         cluster.wait_node("loopd2")
         print(f"     {len(load.acked)} acknowledged, errors {load.errors}", flush=True)
 
-    @check("T3 a loopd node cut off from the database: not ready, acknowledges nothing, catches up after")
+    @check("T3 a loopd node cut off from the database: not ready, acknowledges nothing, catches up after", "T3")
     def _():
         with cluster.grpc() as c:
             c.create_session("t3")
@@ -508,7 +545,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
             assert status == 200, frame
         print(f"     {len(load.acked)} acknowledged, errors {load.errors}", flush=True)
 
-    @check("T2 the PostgreSQL primary killed under load: Patroni promotes the synchronous standby")
+    @check("T2 the PostgreSQL primary killed under load: Patroni promotes the synchronous standby", "T2")
     def _():
         with cluster.grpc() as c:
             c.create_session("t2")
@@ -529,7 +566,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         print(f"     {old} -> {new}; {len(load.acked)} acknowledged, errors {load.errors}, gap {gap:.1f} s",
               flush=True)
 
-    @check("T4 the primary cut off from etcd and its standbys (loopd still reaches it): one primary, no loss")
+    @check("T4 the primary cut off from etcd and its standbys (loopd still reaches it): one primary, no loss", "T4")
     def _():
         with cluster.grpc() as c:
             c.create_session("t4")
@@ -551,14 +588,14 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         print(f"     {old} -> {new}; {len(load.acked)} acknowledged, errors {load.errors}, gap {gap:.1f} s",
               flush=True)
 
-    @check("never two writable primaries, sampled every second through every fault")
+    @check("never two writable primaries, sampled every second through every fault", "primary")
     def _():
         watch.stop()
         assert watch.samples > 30, watch.samples
         assert not watch.double, f"two writable primaries at once: {watch.double[:5]}"
         figures.append(("samples of the writable primaries (never more than one)", str(watch.samples)))
 
-    @check("the example robot streams the corridor through the balancer, unchanged")
+    @check("the example robot streams the corridor through the balancer, unchanged", "robot")
     def _():
         name = f"{PROJECT}-robot"
         cluster.compose("--profile", "robots", "run", "-d", "--name", name, "-e", f"LOOPD_KEY={cluster.key}", "robot",

@@ -446,7 +446,7 @@ async fn job_status(
     Extension(caller): Extension<Caller>,
     Path(job_id): Path<String>,
 ) -> Result<Json<JobStatus>, ApiError> {
-    Ok(Json(s.service.scoped(caller).job(&job_id)?))
+    Ok(Json(s.service.scoped(caller).job(&job_id).await?))
 }
 
 /// Who is calling, from `Authorization: Bearer <key>`, before any route runs: health, readiness

@@ -232,8 +232,8 @@ impl Jobs {
             tracing::error!(error = %e, "job records not readable");
             Vec::new()
         });
-        for (id, record) in records {
-            let mut status: JobStatus = match serde_json::from_slice(&record) {
+        for (id, bytes) in records {
+            let mut status: JobStatus = match serde_json::from_slice(&bytes) {
                 Ok(s) => s,
                 Err(e) => {
                     tracing::warn!(job = %id, error = %e, "job record not readable: skipped");
@@ -242,7 +242,9 @@ impl Jobs {
             };
             if status.state == JobState::Running {
                 status.state = JobState::Interrupted;
-                save(&store, &status);
+                if let Err(e) = store.put_job(&id, &record(&status)) {
+                    tracing::warn!(job = %id, error = %e, "job record not saved");
+                }
                 tracing::warn!(job = %id, done = status.done, total = status.total, "job interrupted by a restart");
             }
             jobs.insert(id, Arc::new(Mutex::new(status)));
@@ -251,11 +253,42 @@ impl Jobs {
         Self { jobs: Mutex::new(jobs), next: next.into(), max_running: max_running.max(1), store }
     }
 
-    pub fn status(&self, id: &str) -> Option<JobStatus> {
-        Some(self.jobs.lock().get(id)?.lock().clone())
+    /// A job's status: this node's if it runs or ran the job here since it started, else (in a
+    /// cluster) the log's, where a job still running on a node that is gone is interrupted.
+    pub async fn status(&self, id: &str) -> Result<Option<JobStatus>, ApiError> {
+        let here = self.jobs.lock().get(id).map(|j| j.lock().clone());
+        if here.is_some() {
+            return Ok(here);
+        }
+        let Some(logged) = self.store.logged_job(id).await? else { return Ok(None) };
+        let mut status: JobStatus = serde_json::from_slice(&logged.record)
+            .map_err(|e| ApiError::Internal(format!("job record not readable: {e}")))?;
+        if status.state == JobState::Running && !logged.runner_alive {
+            status.state = JobState::Interrupted;
+        }
+        Ok(Some(status))
     }
 
-    pub fn start(&self, service: LoopService, session: String, seq: SequenceRequest) -> Result<String, ApiError> {
+    /// Starts a job; its id is returned once its record is kept (in a cluster, in the log).
+    pub async fn start(&self, service: LoopService, session: String, seq: SequenceRequest) -> Result<String, ApiError> {
+        // In a cluster the log numbers jobs, so no two nodes give the same id.
+        let n = match self.store.cluster_job_number().await? {
+            Some(n) => n,
+            None => self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1,
+        };
+        let id = format!("job-{n}");
+        let status = self.admit(&id, &session, seq.frames.len())?;
+        let first = status.lock().clone();
+        if let Err(e) = self.store.keep_job(&id, n, &record(&first), KEPT_JOBS).await {
+            self.jobs.lock().remove(&id);
+            return Err(e.into());
+        }
+        tokio::spawn(run(service, session, seq, status));
+        Ok(id)
+    }
+
+    /// Takes a new job into this node's list, unless too many run already.
+    fn admit(&self, id: &str, session: &str, total: usize) -> Result<Arc<Mutex<JobStatus>>, ApiError> {
         let mut jobs = self.jobs.lock();
         let running = jobs.values().filter(|j| matches!(j.lock().state, JobState::Running)).count();
         if running >= self.max_running {
@@ -276,20 +309,17 @@ impl Jobs {
                 }
             }
         }
-        let id = format!("job-{}", self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1);
         let status = Arc::new(Mutex::new(JobStatus {
-            job_id: id.clone(),
-            session_id: session.clone(),
+            job_id: id.into(),
+            session_id: session.into(),
             state: JobState::Running,
-            total: seq.frames.len(),
+            total,
             done: 0,
             loops: Vec::new(),
             errors: Vec::new(),
         }));
-        self.store.put_job(&id, &record(&status.lock()))?;
-        jobs.insert(id.clone(), status.clone());
-        tokio::spawn(run(service, session, seq, status));
-        Ok(id)
+        jobs.insert(id.into(), status.clone());
+        Ok(status)
     }
 }
 
@@ -297,10 +327,10 @@ fn record(status: &JobStatus) -> Vec<u8> {
     serde_json::to_vec(status).expect("a job status serialises")
 }
 
-/// Keeps the job's record (durable with the next group commit); a failure is logged, the job
-/// goes on.
-fn save(store: &Store, status: &JobStatus) {
-    if let Err(e) = store.put_job(&status.job_id, &record(status)) {
+/// Keeps the job's record (with sled durable with the next group commit, in a cluster in the
+/// log); a failure is logged, the job goes on.
+async fn save(store: &Store, status: &JobStatus) {
+    if let Err(e) = store.keep_job(&status.job_id, job_number(&status.job_id), &record(status), KEPT_JOBS).await {
         tracing::warn!(job = %status.job_id, error = %e, "job record not saved");
     }
 }
@@ -308,7 +338,10 @@ fn save(store: &Store, status: &JobStatus) {
 async fn run(service: LoopService, session: String, seq: SequenceRequest, status: Arc<Mutex<JobStatus>>) {
     let engine = service.engine.clone();
     let width = engine.config().max_batch.max(1);
-    let thumbnails = service.store.session(&session).is_ok_and(|s| s.meta.thumbnails);
+    // Held while the job runs: a cluster node drops a session it does not own once no one holds
+    // it (owners.rs), and the job's frames go into it one by one.
+    let held = service.store.session(&session).ok();
+    let thumbnails = held.as_ref().is_some_and(|s| s.meta.thumbnails);
     let limits = engine.info().limits;
     // Embedding (and thumbnails) run ahead in batches, order kept; adding and searching go one
     // frame at a time.
@@ -336,8 +369,9 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
     let mut saved = std::time::Instant::now();
     while let Some((i, name, robot_id, timestamp, result, thumbnail)) = embedded.next().await {
         if saved.elapsed() >= SAVE_EVERY {
-            // Durable with the next frame's commit.
-            save(&service.store, &status.lock());
+            // With sled, durable with the next frame's commit.
+            let now = status.lock().clone();
+            save(&service.store, &now).await;
             saved = std::time::Instant::now();
         }
         let descriptor = match result {
@@ -395,7 +429,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
         tracing::info!(job = %s.job_id, frames = s.done, loops = s.loops.len(), "sequence job finished");
         s.clone()
     };
-    save(&service.store, &finished);
+    save(&service.store, &finished).await;
     if let Err(e) = service.store.durable_records().await {
         tracing::warn!(job = %finished.job_id, error = %e, "job record not made durable");
     }

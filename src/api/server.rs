@@ -280,6 +280,8 @@ impl RunningServer {
             let me = c.membership(grpc_addr);
             tracing::info!(node = %me.node, owners = me.owners, "joining the cluster's members");
             service.store.join_members(me);
+            // Jobs it ran before a restart are over: say so to every node before taking calls.
+            service.store.interrupt_logged_jobs().await;
             members = Some(tokio::spawn(follow_members(service.store.clone(), c.tenant_refresh, rx.clone())));
         }
 

@@ -540,12 +540,12 @@ impl LoopService {
         let s = self.store.session(session)?;
         self.check_space(&s)?;
         check_robot_id(&seq.robot_id)?;
-        let id = self.jobs.start(self.clone(), s.meta.id.clone(), seq)?;
+        let id = self.jobs.start(self.clone(), s.meta.id.clone(), seq).await?;
         self.store.durable_records().await?;
         Ok(id)
     }
 
-    pub fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {
-        self.jobs.status(job_id).ok_or_else(|| ApiError::NotFound(format!("job '{job_id}' not found")))
+    pub async fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {
+        self.jobs.status(job_id).await?.ok_or_else(|| ApiError::NotFound(format!("job '{job_id}' not found")))
     }
 }

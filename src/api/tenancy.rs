@@ -43,7 +43,7 @@ impl Scoped<'_> {
     /// Limits checked before a write or query: the rate first, then stored frames (`adding`
     /// more), then the tenant's share of the queue (the slot is held until the guard drops).
     /// Checked per request: writes in flight at once may pass a frame limit by their number.
-    fn admit(&self, adding: usize) -> Result<Option<InFlight>, ApiError> {
+    async fn admit(&self, adding: usize) -> Result<Option<InFlight>, ApiError> {
         let Some(quota) = self.caller.quota_arc() else { return Ok(None) };
         quota.counters.requests.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let refuse = |why: Refusal, message: String| {
@@ -52,9 +52,11 @@ impl Scoped<'_> {
         };
         quota.take().map_err(|m| refuse(Refusal::Rate, m))?;
         if let (Some(max), true) = (quota.limits.max_frames, adding > 0) {
-            // Sessions as this node holds them (in a cluster, those it has loaded).
-            let held: usize = self.held().iter().map(|s| s.frames).sum();
-            if (held + adding) as u64 > max {
+            // Every session of the tenant (in a cluster, as the log counts them: a node may not
+            // hold them all).
+            let counts = self.service.store.frame_counts().await?;
+            let held: u64 = counts.iter().filter(|(id, _)| self.caller.own(id).is_some()).map(|(_, n)| n).sum();
+            if held + adding as u64 > max {
                 return Err(refuse(
                     Refusal::Frames,
                     format!(
@@ -110,11 +112,6 @@ impl Scoped<'_> {
         Ok(self.own(all))
     }
 
-    /// This tenant's sessions as this node holds them now, without asking a cluster's log.
-    fn held(&self) -> Vec<SessionInfo> {
-        self.own(self.service.list_sessions())
-    }
-
     fn own(&self, all: Vec<SessionInfo>) -> Vec<SessionInfo> {
         all.into_iter().filter(|s| self.caller.own(&s.meta.id).is_some()).map(|s| self.caller.view(s)).collect()
     }
@@ -138,7 +135,7 @@ impl Scoped<'_> {
     pub async fn similarity(&self, session: &str, size: usize) -> Result<Similarity, ApiError> {
         let sid = self.fresh(session).await?;
         // A matrix costs size² dot products: it counts against the tenant's rate like a query.
-        let _slot = self.admit(0)?;
+        let _slot = self.admit(0).await?;
         self.service.similarity(&sid, size).await
     }
 
@@ -168,7 +165,7 @@ impl Scoped<'_> {
 
     pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {
         let sid = self.fresh(session).await?;
-        let _slot = self.admit(1)?;
+        let _slot = self.admit(1).await?;
         let id = self.service.add_frame(&sid, f).await?;
         self.added(1);
         Ok(id)
@@ -183,7 +180,7 @@ impl Scoped<'_> {
         options: &QueryOverrides,
     ) -> Result<Vec<LoopMatch>, ApiError> {
         let sid = self.fresh(session).await?;
-        let _slot = self.admit(0)?;
+        let _slot = self.admit(0).await?;
         self.service.query(&sid, robot_id, at_time, target, options).await
     }
 
@@ -194,7 +191,7 @@ impl Scoped<'_> {
         options: &QueryOverrides,
     ) -> Result<(u64, Vec<LoopMatch>), ApiError> {
         let sid = self.fresh(session).await?;
-        let _slot = self.admit(1)?;
+        let _slot = self.admit(1).await?;
         let answer = self.service.add_and_query(&sid, f, options).await?;
         self.added(1);
         Ok(answer)
@@ -203,15 +200,18 @@ impl Scoped<'_> {
     pub async fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
         let sid = self.fresh(session).await?;
         // A job runs after this returns: the slot checks the share at submission only.
-        drop(self.admit(seq.frames.len())?);
+        drop(self.admit(seq.frames.len()).await?);
         self.service.start_sequence(&sid, seq).await
     }
 
     /// A job of one of this tenant's sessions.
-    pub fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {
+    pub async fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {
         let not_found =
             || ApiError::NotFound(format!("job '{}' not found", job_id.chars().take(80).collect::<String>()));
-        let mut status = self.service.job(job_id).map_err(|_| not_found())?;
+        let mut status = match self.service.job(job_id).await {
+            Err(ApiError::NotFound(_)) => return Err(not_found()),
+            other => other?,
+        };
         let own = self.caller.own(&status.session_id).ok_or_else(not_found)?.to_string();
         status.session_id = own;
         Ok(status)

@@ -5,8 +5,7 @@
 //! any other before it arrived (read-after-ack, one round trip, no push between nodes). A frame is
 //! acknowledged once its commit reached a synchronous standby, then applied here.
 //!
-//! Tenants and kept loops (with verdicts) are in the log as well; sequence jobs stay node-local
-//! in this step (docs/cluster.md).
+//! Tenants, kept loops (with verdicts) and sequence jobs' records are in the log as well.
 use super::loops::LoopRecord;
 use super::pg::{Appended, Head, PgLog, Replication};
 use super::record::{encode_frame, frame_key, FrameHeader, SessionMeta};
@@ -152,6 +151,15 @@ impl Store {
             }
         }
         Ok(self.list())
+    }
+
+    /// Every session's id and frame count: in a cluster the log's, sessions this node has not
+    /// loaded included (a tenant's frame limit counts them all); with sled, this node's.
+    pub async fn frame_counts(&self) -> Result<Vec<(String, u64)>, StoreError> {
+        match &self.cluster {
+            Some(c) => c.log.frame_counts().await,
+            None => Ok(self.list().into_iter().map(|s| (s.meta.id, s.frames as u64)).collect()),
+        }
     }
 
     /// Forgets the sessions held here that the log's `heads` lack (deleted through another node).

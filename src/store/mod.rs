@@ -1,5 +1,6 @@
 //! Map sessions on disk (sled) with an in-memory exact search index per session.
 mod cluster;
+mod cluster_jobs;
 pub mod device;
 pub mod disk;
 pub mod durability;
@@ -8,6 +9,7 @@ pub mod kernels;
 pub mod loops;
 mod owners;
 pub mod pg;
+mod pg_jobs;
 mod pg_members;
 pub use owners::{ClusterView, HeldSession, Membership};
 pub mod query;

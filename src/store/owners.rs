@@ -51,6 +51,13 @@ pub(super) struct Members {
     live: parking_lot::RwLock<Vec<String>>,
 }
 
+impl Members {
+    /// The live members seen at the last round (empty before the first).
+    pub(super) fn live(&self) -> Vec<String> {
+        self.live.read().clone()
+    }
+}
+
 pub(super) fn now_ms() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64)
 }
@@ -75,6 +82,12 @@ impl Store {
         if let Some(c) = &self.cluster {
             *c.members.me.write() = Some(me);
         }
+    }
+
+    /// This node's name among the members (empty before it joined, and with sled).
+    pub(super) fn node_name(&self) -> String {
+        let me = self.cluster.as_ref().and_then(|c| c.members.me.read().clone());
+        me.map(|m| m.node).unwrap_or_default()
     }
 
     /// One round: heartbeat, read the live members, load and catch up the sessions this node

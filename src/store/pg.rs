@@ -1,7 +1,7 @@
 //! The durable frame log on PostgreSQL with synchronous replication (issue #17): the cluster's
 //! copy of every session and frame, beside which loopd nodes keep their in-memory exact indexes
-//! (`SessionIndex`), rebuilt from it. `serve --cluster` uses it through `cluster.rs`; membership,
-//! the balancer and the failover suite are still to come (docs/cluster.md).
+//! (`SessionIndex`), rebuilt from it. `serve --cluster` uses it through `cluster.rs`; members
+//! (`pg_members.rs`) and sequence jobs (`pg_jobs.rs`) have their tables beside it (docs/cluster.md).
 //!
 //! Schema: `loopd_sessions(id, tbl, meta, version, next_frame_id)` and one table per session,
 //! `loopd_frames_<tbl>(frame_id, seq, write_id, record, features, thumb)`, so deleting a session
@@ -94,7 +94,9 @@ const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS loopd_sessions (
     next_frame_id bigint NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS loopd_tenants (name text PRIMARY KEY, record jsonb NOT NULL);
-CREATE TABLE IF NOT EXISTS loopd_members (node text PRIMARY KEY, seen timestamptz NOT NULL, since timestamptz NOT NULL)";
+CREATE TABLE IF NOT EXISTS loopd_members (node text PRIMARY KEY, seen timestamptz NOT NULL, since timestamptz NOT NULL);
+CREATE TABLE IF NOT EXISTS loopd_jobs (id text PRIMARY KEY, n bigint NOT NULL, node text NOT NULL, record jsonb NOT NULL);
+CREATE SEQUENCE IF NOT EXISTS loopd_job_numbers";
 
 /// Transient: the database cannot be reached or is switching primaries; retry later. A commit
 /// whose answer was lost may or may not have happened: frames with ids make the retry exact
@@ -246,6 +248,11 @@ impl PgLog {
         self.db.client().await
     }
 
+    /// Unavailable while the primary does not wait for a synchronous standby (checked before a write).
+    pub(super) fn writable(&self) -> Result<(), StoreError> {
+        self.db.writable()
+    }
+
     /// Whether the log takes writes now: a connection to a writable primary whose commits wait
     /// for a synchronous standby (checked again on that connection: settings change live).
     pub async fn probe(&self) -> Result<(), StoreError> {
@@ -333,6 +340,13 @@ impl PgLog {
                    ON CONFLICT (name) DO UPDATE SET record = EXCLUDED.record";
         client.execute(sql, &[&name, &record]).await.map_err(pg_error)?;
         Ok(())
+    }
+
+    /// Every session's id and frame count (its version: one `seq` per frame, and frames are only
+    /// ever deleted with their session).
+    pub async fn frame_counts(&self) -> Result<Vec<(String, u64)>, StoreError> {
+        let rows = self.client().await?.query("SELECT id, version FROM loopd_sessions", &[]).await.map_err(pg_error)?;
+        Ok(rows.iter().map(|r| (r.get(0), r.get::<_, i64>(1).max(0) as u64)).collect())
     }
 
     /// Every tenant's record, by name.

@@ -1,0 +1,62 @@
+//! Sequence jobs' records in the log, so a job started through one node is polled through any:
+//! `loopd_jobs(id, n, node, record)`, numbered by the log's sequence (unique across nodes) and
+//! written by the node that runs the job.
+use super::pg::{pg_error, PgLog};
+use super::StoreError;
+
+/// A job's record as the log holds it, and the node that runs (or ran) it.
+pub struct JobRow {
+    pub node: String,
+    pub record: Vec<u8>,
+}
+
+impl PgLog {
+    /// A job number that no node of the cluster has given (the log's sequence).
+    pub async fn next_job_number(&self) -> Result<u64, StoreError> {
+        let row = self.client().await?.query_one("SELECT nextval('loopd_job_numbers')", &[]).await.map_err(pg_error)?;
+        Ok(row.get::<_, i64>(0).max(0) as u64)
+    }
+
+    /// Keeps job `id` (number `n`) as `node` runs it, replacing its record; a new job drops the
+    /// oldest finished ones beyond `kept` (bounded, as on one node).
+    pub async fn put_job(&self, id: &str, n: u64, node: &str, record: &[u8], kept: usize) -> Result<(), StoreError> {
+        let record: serde_json::Value =
+            serde_json::from_slice(record).map_err(|e| StoreError::InvalidArgument(format!("job record: {e}")))?;
+        let client = self.client().await?;
+        self.writable()?;
+        let n = i64::try_from(n).map_err(|_| StoreError::InvalidArgument("job number above 2^63 - 1".into()))?;
+        let sql = "INSERT INTO loopd_jobs (id, n, node, record) VALUES ($1, $2, $3, $4) \
+                   ON CONFLICT (id) DO UPDATE SET node = EXCLUDED.node, record = EXCLUDED.record RETURNING xmax = 0";
+        let inserted: bool = client.query_one(sql, &[&id, &n, &node, &record]).await.map_err(pg_error)?.get(0);
+        if inserted {
+            let sql = "DELETE FROM loopd_jobs WHERE id IN (SELECT id FROM loopd_jobs \
+                       WHERE record->>'state' <> 'running' ORDER BY n DESC OFFSET $1)";
+            client.execute(sql, &[&(kept as i64)]).await.map_err(pg_error)?;
+        }
+        Ok(())
+    }
+
+    /// Job `id`'s record, if the log holds it.
+    pub async fn job(&self, id: &str) -> Result<Option<JobRow>, StoreError> {
+        let row = self
+            .client()
+            .await?
+            .query_opt("SELECT node, record FROM loopd_jobs WHERE id = $1", &[&id])
+            .await
+            .map_err(pg_error)?;
+        let Some(row) = row else { return Ok(None) };
+        let record: serde_json::Value = row.get(1);
+        let record = serde_json::to_vec(&record).map_err(|e| StoreError::Storage(format!("job record: {e}")))?;
+        Ok(Some(JobRow { node: row.get(0), record }))
+    }
+
+    /// Marks the jobs `node` was running as interrupted (it starts again: they ran in its earlier
+    /// life). The number of jobs marked.
+    pub async fn interrupt_jobs(&self, node: &str) -> Result<u64, StoreError> {
+        let client = self.client().await?;
+        self.writable()?;
+        let sql = "UPDATE loopd_jobs SET record = jsonb_set(record, '{state}', '\"interrupted\"') \
+                   WHERE node = $1 AND record->>'state' = 'running'";
+        client.execute(sql, &[&node]).await.map_err(pg_error)
+    }
+}
