@@ -3,11 +3,15 @@
 //! nodes give the same job id.
 use super::{Store, StoreError};
 
+/// How often a running job's record is rewritten at most (`api::jobs` saves every 2 s).
+const JOB_REWRITE: std::time::Duration = std::time::Duration::from_secs(2);
+
 /// A job's record from the cluster's log, and whether its runner may still be running it.
 pub struct LoggedJob {
     pub record: Vec<u8>,
-    /// False when the node that ran it is this process's predecessor or no longer a member: a
-    /// record that still says running is then an interrupted job.
+    /// False when the node that ran it is this process's predecessor, or is no longer a member
+    /// and has not written the record lately: a record that still says running is then an
+    /// interrupted job.
     pub runner_alive: bool,
 }
 
@@ -33,11 +37,17 @@ impl Store {
     /// Job `id` as the cluster's log holds it (None with sled, or when the log has no such job).
     pub async fn logged_job(&self, id: &str) -> Result<Option<LoggedJob>, StoreError> {
         let Some(c) = &self.cluster else { return Ok(None) };
-        let Some(job) = c.log.job(id).await? else { return Ok(None) };
-        let me = self.node_name();
+        let me = c.members.me();
+        // A runner rewrites a running job's record every few seconds: one written within the
+        // member ttl (and twice the rewrite period) is alive even if a late heartbeat dropped
+        // its node from this node's view for a round. "Interrupted" is final; it must not flap.
+        let ttl = me.as_ref().map_or(std::time::Duration::from_secs(5), |m| m.ttl);
+        let Some(job) = c.log.job(id, ttl.max(JOB_REWRITE * 2)).await? else { return Ok(None) };
         let live = c.members.live();
+        let predecessor = me.is_some_and(|m| m.node == job.node);
         // Before the first members round the list is empty: the runner is not known to be gone.
-        let runner_alive = job.node != me && (live.is_empty() || live.contains(&job.node));
+        let member = live.is_empty() || live.contains(&job.node);
+        let runner_alive = !predecessor && (member || job.recent);
         Ok(Some(LoggedJob { record: job.record, runner_alive }))
     }
 

@@ -52,6 +52,11 @@ pub(super) struct Members {
 }
 
 impl Members {
+    /// This node's membership (None before it joined).
+    pub(super) fn me(&self) -> Option<Membership> {
+        self.me.read().clone()
+    }
+
     /// The live members seen at the last round (empty before the first).
     pub(super) fn live(&self) -> Vec<String> {
         self.live.read().clone()

@@ -95,7 +95,8 @@ const SCHEMA: &str = "CREATE TABLE IF NOT EXISTS loopd_sessions (
 );
 CREATE TABLE IF NOT EXISTS loopd_tenants (name text PRIMARY KEY, record jsonb NOT NULL);
 CREATE TABLE IF NOT EXISTS loopd_members (node text PRIMARY KEY, seen timestamptz NOT NULL, since timestamptz NOT NULL);
-CREATE TABLE IF NOT EXISTS loopd_jobs (id text PRIMARY KEY, n bigint NOT NULL, node text NOT NULL, record jsonb NOT NULL);
+CREATE TABLE IF NOT EXISTS loopd_jobs (id text PRIMARY KEY, n bigint NOT NULL, node text NOT NULL, record jsonb NOT NULL, \
+    updated timestamptz NOT NULL DEFAULT now());
 CREATE SEQUENCE IF NOT EXISTS loopd_job_numbers";
 
 /// Transient: the database cannot be reached or is switching primaries; retry later. A commit

@@ -1,6 +1,6 @@
 //! Sequence jobs' records in the log, so a job started through one node is polled through any:
-//! `loopd_jobs(id, n, node, record)`, numbered by the log's sequence (unique across nodes) and
-//! written by the node that runs the job.
+//! `loopd_jobs(id, n, node, record, updated)`, numbered by the log's sequence (unique across
+//! nodes) and written by the node that runs the job.
 use super::pg::{pg_error, PgLog};
 use super::StoreError;
 
@@ -8,6 +8,8 @@ use super::StoreError;
 pub struct JobRow {
     pub node: String,
     pub record: Vec<u8>,
+    /// Whether the record was written within the `recent` asked for (by the database's clock).
+    pub recent: bool,
 }
 
 impl PgLog {
@@ -25,8 +27,8 @@ impl PgLog {
         let client = self.client().await?;
         self.writable()?;
         let n = i64::try_from(n).map_err(|_| StoreError::InvalidArgument("job number above 2^63 - 1".into()))?;
-        let sql = "INSERT INTO loopd_jobs (id, n, node, record) VALUES ($1, $2, $3, $4) \
-                   ON CONFLICT (id) DO UPDATE SET node = EXCLUDED.node, record = EXCLUDED.record RETURNING xmax = 0";
+        let sql = "INSERT INTO loopd_jobs (id, n, node, record) VALUES ($1, $2, $3, $4) ON CONFLICT (id) \
+                   DO UPDATE SET node = EXCLUDED.node, record = EXCLUDED.record, updated = now() RETURNING xmax = 0";
         let inserted: bool = client.query_one(sql, &[&id, &n, &node, &record]).await.map_err(pg_error)?.get(0);
         if inserted {
             let sql = "DELETE FROM loopd_jobs WHERE id IN (SELECT id FROM loopd_jobs \
@@ -36,18 +38,14 @@ impl PgLog {
         Ok(())
     }
 
-    /// Job `id`'s record, if the log holds it.
-    pub async fn job(&self, id: &str) -> Result<Option<JobRow>, StoreError> {
-        let row = self
-            .client()
-            .await?
-            .query_opt("SELECT node, record FROM loopd_jobs WHERE id = $1", &[&id])
-            .await
-            .map_err(pg_error)?;
+    /// Job `id`'s record, if the log holds it, and whether it was written within `recent`.
+    pub async fn job(&self, id: &str, recent: std::time::Duration) -> Result<Option<JobRow>, StoreError> {
+        let sql = "SELECT node, record, updated > now() - make_interval(secs => $2) FROM loopd_jobs WHERE id = $1";
+        let row = self.client().await?.query_opt(sql, &[&id, &recent.as_secs_f64()]).await.map_err(pg_error)?;
         let Some(row) = row else { return Ok(None) };
         let record: serde_json::Value = row.get(1);
         let record = serde_json::to_vec(&record).map_err(|e| StoreError::Storage(format!("job record: {e}")))?;
-        Ok(Some(JobRow { node: row.get(0), record }))
+        Ok(Some(JobRow { node: row.get(0), record, recent: row.get(2) }))
     }
 
     /// Marks the jobs `node` was running as interrupted (it starts again: they ran in its earlier
