@@ -91,8 +91,7 @@ impl Store {
 
     /// This node's name among the members (empty before it joined, and with sled).
     pub(super) fn node_name(&self) -> String {
-        let me = self.cluster.as_ref().and_then(|c| c.members.me.read().clone());
-        me.map(|m| m.node).unwrap_or_default()
+        self.cluster.as_ref().and_then(|c| c.members.me()).map(|m| m.node).unwrap_or_default()
     }
 
     /// One round: heartbeat, read the live members, load and catch up the sessions this node
