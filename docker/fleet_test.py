@@ -93,6 +93,22 @@ def logs(container: str) -> str:
     return r.stdout
 
 
+def wait_for_gpu_image(timeout: float = 1800) -> None:
+    """scripts/dev test builds the GPU image (4.5 GB) while the checks before this one run and
+    writes "ok" or "failed" to LOOPD_GPU_IMAGE_STATUS when it is done; without that variable the
+    image is already there (docker/test built it)."""
+    status = os.environ.get("LOOPD_GPU_IMAGE_STATUS")
+    if not status:
+        return
+    start = time.monotonic()
+    while not pathlib.Path(status).exists():
+        assert time.monotonic() - start < timeout, f"the GPU image was not built within {timeout} s"
+        time.sleep(1)
+    state = pathlib.Path(status).read_text().strip()
+    assert state == "ok", f"building loopd:gpu failed ({state}): see target/docker/gpu.log"
+    timings.append(("waited for the GPU image", time.monotonic() - start))
+
+
 def check(name):
     def run(f):
         start = time.monotonic()
@@ -235,6 +251,7 @@ def run_checks(fleet: Fleet) -> None:
 
     @check("the GPU image starts on a host without a GPU (auto -> cpu) and embeds as the CPU image does")
     def _():
+        wait_for_gpu_image()
         name = f"{PROJECT}-gpu"
         sh("docker", "run", "-d", "--name", name, "-e", "LOOPD_INSECURE=true", "loopd:gpu")
         try:

@@ -1,5 +1,4 @@
 //! Paths and loaders shared by the integration tests (real data, real weights).
-#![allow(dead_code)]
 pub mod certs;
 pub mod pg;
 pub mod proc;
@@ -57,7 +56,7 @@ pub fn photo_inputs(model: &Model) -> Vec<tch::Tensor> {
 pub fn loopd_bin() -> std::process::Command {
     let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_loopd"));
     // The identity heads: these tests compare the CLI with servers built on the plain ImageNet
-    // model; the shipped heads have their own tests (tests/train.rs).
+    // model; the shipped heads have their own tests (tests/it/train.rs).
     c.current_dir(root()).env("LOOPD_DEVICE", "cpu").env("LOOPD_HEADS", "none");
     c
 }
@@ -94,5 +93,19 @@ pub fn desk_frame(session: &str, i: usize) -> loopd::pb::AddFrameRequest {
         content: Some(loopd::pb::add_frame_request::Content::Image(image.into())),
         options: Some(loopd::pb::QueryOptions { k: Some(3), verify: Some(true), ..Default::default() }),
         ..Default::default()
+    }
+}
+
+/// A new session of 2048-d descriptors (the ImageNet model's) named `name`, stored as `storage`,
+/// with the default query options: what the store-level tests create.
+pub fn session(name: &str, storage: loopd::store::Storage) -> loopd::store::NewSession {
+    loopd::store::NewSession {
+        name: name.into(),
+        dim: 2048,
+        descriptor_id: "t".into(),
+        storage,
+        default_query: Default::default(),
+        camera: None,
+        thumbnails: false,
     }
 }

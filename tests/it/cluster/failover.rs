@@ -10,9 +10,8 @@
 //! and the standby, which never had the frame, is promoted. Asserted: the write is never
 //! acknowledged; B and A then answer without the frame and hold exactly the acknowledged ones;
 //! and writes are refused while the new primary has no synchronous standby.
-mod common;
-use common::pg::{env, pg_ctl, psql};
-use common::{data, imagenet_model};
+use crate::common::pg::{env, pg_ctl, psql};
+use crate::common::{data, imagenet_model};
 use loopd::api::server::{ClusterConfig, RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::pb::{self, loopd_client::LoopdClient};

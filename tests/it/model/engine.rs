@@ -1,6 +1,5 @@
 //! The batching engine on real frames: own results, batching, overload, cancellation.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::engine::{Engine, EngineConfig, EngineError};
 use loopd::model::config::ModelConfig;
 use loopd::model::device::DType;

@@ -1,8 +1,7 @@
 //! `loopd train` on real frames: a step equals PyTorch's, a short run lowers the loss and its heads
 //! change the descriptors, the same seed gives the same heads, a stopped run resumes, bad input
 //! is refused before any step.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::engine::{Engine, EngineConfig};
 use loopd::model::config::{ModelConfig, Preprocess};
 use loopd::model::device::DType;

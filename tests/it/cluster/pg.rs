@@ -5,8 +5,7 @@
 //! batches are all or none, a stored frame id answers already-exists (exact retries), versions
 //! follow commit order and a reload gives the frames back bit for bit (f32) in that order, a
 //! deleted session is gone, and a primary whose commits do not wait for a standby is refused.
-mod common;
-use common::pg::{env, psql, server};
+use crate::common::pg::{env, psql, server};
 use loopd::store::pg::{PgLog, Replication};
 use loopd::store::record::{SessionMeta, Storage};
 use loopd::store::{normalize, NewFrame, StoreError};

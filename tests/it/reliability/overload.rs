@@ -4,9 +4,8 @@
 //! that stall (half-sent headers, no HTTP/2 preface, an idle keep-alive, a stalled or trickled
 //! body) are closed by their deadlines, more connections than the limit are refused, and an idle
 //! gRPC channel stays usable.
-mod common;
-use common::proc::Loopd;
-use common::*;
+use crate::common::proc::Loopd;
+use crate::common::*;
 use loopd::pb;
 use loopd::pb::loopd_client::LoopdClient;
 use std::time::{Duration, Instant};

@@ -1,7 +1,6 @@
 //! Loop searches run on a bounded pool of blocking threads, never on the request executor:
 //! health checks answer promptly while large searches keep every core busy.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::api::service::CreateSession;
 use loopd::engine::EngineConfig;

@@ -1,7 +1,6 @@
 //! Verified loops through the real server on 127.0.0.1 (HTTP and gRPC clients) on real frames,
 //! and `loopd eval --verify geometric` giving the server's verified matches.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::pb;

@@ -2,9 +2,8 @@
 //! clients with TLS on: two tenants with the same session id, every session route tried by the
 //! other tenant (NOT_FOUND / 404, never a hint), bad keys of every kind, admin-only routes, open
 //! health, keys kept across a restart, and the refusal to serve beyond loopback without keys.
-mod common;
-use common::certs::{write, Ca};
-use common::*;
+use crate::common::certs::{write, Ca};
+use crate::common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::api::tls::TlsFiles;
 use loopd::auth::AuthConfig;

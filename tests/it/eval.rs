@@ -1,6 +1,5 @@
 //! Ground-truth loading (the paper's four matrices) and `loopd eval` end to end on real data.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::eval::gt::GroundTruth;
 
 #[test]

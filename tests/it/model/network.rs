@@ -1,6 +1,5 @@
 //! The descriptor network on real ImageNet weights and real photos.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::model::config::ModelConfig;
 use loopd::model::device::DType;
 use loopd::model::network::Variant;

@@ -8,9 +8,8 @@
 //! the primary stopped, writes answer UNAVAILABLE / 503 with Retry-After while queries go on from
 //! the nodes' indexes (flagged stale), readiness (/readyz, gRPC health) turns false, and writes
 //! and readiness resume once it is back.
-mod common;
-use common::pg::{env, server};
-use common::{data, desk_frame, imagenet_model};
+use crate::common::pg::{env, server};
+use crate::common::{data, desk_frame, imagenet_model};
 use loopd::api::server::{ClusterConfig, RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::pb::{self, loopd_client::LoopdClient};
@@ -448,7 +447,7 @@ async fn until_views(nodes: &[&RunningServer], what: &str, want: impl Fn(&[serde
 #[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
 async fn sessions_are_held_warm_by_two_live_members() {
     // Nodes of earlier tests stopped without leaving; their rows would count until the ttl.
-    common::pg::psql("DELETE FROM loopd_members");
+    crate::common::pg::psql("DELETE FROM loopd_members");
     let dirs: Vec<_> = (0..3).map(|_| tempfile::tempdir().unwrap()).collect();
     let mut nodes = Vec::new();
     for (i, d) in dirs.iter().enumerate() {
@@ -513,7 +512,7 @@ async fn sessions_are_held_warm_by_two_live_members() {
     // A member that stops heartbeating ("ghost": a row nobody refreshes) owns some sessions
     // until the ttl: a node it displaces drops them, yet each stays warm on the other owner and
     // answered through both; after the ttl both hold every session again.
-    common::pg::psql("INSERT INTO loopd_members (node, seen, since) VALUES ('ghost', now(), now())");
+    crate::common::pg::psql("INSERT INTO loopd_members (node, seen, since) VALUES ('ghost', now(), now())");
     until_views(&left, "the ghost counted: sessions it owns held by their one live owner only", |v| {
         let held: Vec<Vec<(String, bool, u64)>> = sessions.iter().map(|id| holders(v, id)).collect();
         members(v, &["ghost", "node-0", "node-2"])
@@ -557,7 +556,7 @@ async fn a_tenants_frame_limit_counts_its_frames_on_every_node() {
         nodes.push(member_node_keyed(d.path(), &format!("limit-{i}"), Some(ADMIN)).await);
     }
     // Nodes of earlier tests that stopped without leaving (these three heartbeat again at once).
-    common::pg::psql("DELETE FROM loopd_members");
+    crate::common::pg::psql("DELETE FROM loopd_members");
     let http = reqwest::Client::new();
     let base = |n: &RunningServer| format!("http://{}/v1", n.http_addr);
     let r = http.post(format!("{}/tenants", base(&nodes[0]))).bearer_auth(ADMIN);
@@ -634,7 +633,7 @@ fn leftover_job(id: &str, node: &str) {
 fn logged_job(id: &str, node: &str, updated: &str) {
     let record = serde_json::json!({ "job_id": id, "session_id": "seq-a", "state": "running", "total": 10,
                                      "done": 4, "loops": [], "errors": [] });
-    common::pg::psql(&format!(
+    crate::common::pg::psql(&format!(
         "INSERT INTO loopd_jobs (id, n, node, record, updated) VALUES ('{id}', 0, '{node}', '{record}', \
          {updated}) ON CONFLICT (id) DO UPDATE SET node = EXCLUDED.node, record = EXCLUDED.record, \
          updated = EXCLUDED.updated"
@@ -697,9 +696,9 @@ async fn sequence_jobs_are_answered_through_every_node() {
     // A node started again under its name marks them interrupted in the log, for every node.
     leftover_job("job-earlier-c", "jobs-c");
     let c = member_node(dirs[2].path(), "jobs-c").await;
-    let state = common::pg::psql("SELECT record->>'state' FROM loopd_jobs WHERE id = 'job-earlier-c'");
+    let state = crate::common::pg::psql("SELECT record->>'state' FROM loopd_jobs WHERE id = 'job-earlier-c'");
     assert_eq!(state, "interrupted");
-    common::pg::psql(
+    crate::common::pg::psql(
         "DELETE FROM loopd_jobs WHERE id IN ('job-ghost', 'job-earlier-b', 'job-earlier-c', 'job-recent')",
     );
     // The next test counts every session's owners.

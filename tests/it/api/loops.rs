@@ -2,8 +2,7 @@
 //! on corridor frames: every candidate answered for a stored frame is listed exactly (pairs,
 //! ranks, scores), filters and pages cut the same list, verdicts are recorded and survive a
 //! re-answer and a restart, and bad input gets 400 / 404.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::pb;

@@ -1,8 +1,7 @@
 //! Geometric verification on real frames from ../shared/data.
 //! Datasets: slambook2 ch11 desk frames (TUM RGB-D), EuRoC MAV frames via Kimera-VIO's tests.
 
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::model::preprocess::ImageLimits;
 use std::path::{Path, PathBuf};
 

@@ -2,8 +2,7 @@
 //! malformed feature records never panic: Err from extraction/decoding,
 //! `verified: false` with a reason from verification.
 
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::model::preprocess::ImageLimits;
 use std::io::Cursor;
 

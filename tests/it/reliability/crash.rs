@@ -4,9 +4,8 @@
 //! times (LOOPD_CRASH_CYCLES: more). Every acknowledged frame must be there after each restart and, at the end, searchable
 //! with its descriptor bit-identical; acknowledged deletes stay deleted; acknowledged jobs still
 //! answer. Restart times are printed.
-mod common;
-use common::proc::Loopd;
-use common::*;
+use crate::common::proc::Loopd;
+use crate::common::*;
 use loopd::pb;
 use loopd::pb::loopd_client::LoopdClient;
 use parking_lot::Mutex;

@@ -2,9 +2,8 @@
 //! committed): mutual TLS with a client CA, clients without a certificate or with one from
 //! another CA refused, plain text refused, and a SIGHUP reload of the certificate that new
 //! connections see while an open stream goes on.
-mod common;
-use common::certs::{write, Ca};
-use common::*;
+use crate::common::certs::{write, Ca};
+use crate::common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::api::tls::TlsFiles;
 use loopd::auth::AuthConfig;

@@ -1,8 +1,7 @@
 //! Defects a fleet harness found (issue #14), each a test against the real server on loopback:
 //! shutdown with open streams, gRPC latency of larger answers, a tar header claiming a terabyte,
 //! one status per size limit on both APIs, and decode memory bounded in bytes.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::model::preprocess::{decode, ImageError, ImageLimits};

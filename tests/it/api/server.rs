@@ -1,7 +1,6 @@
 //! The real server on 127.0.0.1 (both APIs, temporary data directory) driven by a tonic
 //! client and a real HTTP client, on real frames.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::model::preprocess::ImageLimits;
@@ -112,7 +111,7 @@ async fn two_robots_stream_the_corridor_and_the_second_finds_the_first() {
         assert!(a.matches.iter().all(|m| m.robot_id == "mapper"));
         hits += refs.contains(&ref_id[&a.matches[0].frame_id]) as usize;
     }
-    // Plain ImageNet features reach 0.56 recall@1 here (tests/store.rs).
+    // Plain ImageNet features reach 0.56 recall@1 here (tests/it/store/sessions.rs).
     assert!(hits >= 50, "visitor's top-1 is a ground-truth reference frame for only {hits}/111 frames");
     let session = client.get_session(pb::GetSessionRequest { id: "corridor".into() }).await.unwrap().into_inner();
     assert_eq!(session.frames, 222);

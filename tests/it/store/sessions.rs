@@ -1,11 +1,10 @@
 //! Map sessions on a real sled database, with descriptors of real Corridor frames.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::model::network::Variant;
 use loopd::store::query::{LoopQuery, Match, Pose, Scope};
 use loopd::store::record::FrameHeader;
 use loopd::store::Storage;
-use loopd::store::{NewFrame, NewSession, Store, StoreError};
+use loopd::store::{NewFrame, Store, StoreError};
 use std::sync::OnceLock;
 
 /// Corridor `query/` and `ref/` descriptors (ImageNet backbone, 224x224 input), embedded once.
@@ -68,21 +67,7 @@ fn frame(id: Option<u64>, robot: &str, t: f64, d: &[f32]) -> NewFrame {
 
 async fn two_robot_session(store: &Store, id: &str, storage: Storage) {
     let (query, reference) = corridor();
-    store
-        .create_session(
-            Some(id.into()),
-            NewSession {
-                name: "corridor".into(),
-                dim: 2048,
-                descriptor_id: "test".into(),
-                storage,
-                default_query: LoopQuery::default(),
-                camera: None,
-                thumbnails: false,
-            },
-        )
-        .await
-        .unwrap();
+    store.create_session(Some(id.into()), session("corridor", storage)).await.unwrap();
     let refs: Vec<NewFrame> =
         reference.iter().enumerate().map(|(i, d)| frame(Some(i as u64), "ref", i as f64, d)).collect();
     add(store, id, refs).await.unwrap();
@@ -183,21 +168,7 @@ async fn exclusion_window_skips_the_robots_own_recent_frames() {
     let dir = tempfile::tempdir().unwrap();
     let store = Store::open(dir.path()).unwrap();
     let (query, _) = corridor();
-    store
-        .create_session(
-            Some("w".into()),
-            NewSession {
-                name: "w".into(),
-                dim: 2048,
-                descriptor_id: "t".into(),
-                storage: Storage::F16,
-                default_query: LoopQuery::default(),
-                camera: None,
-                thumbnails: false,
-            },
-        )
-        .await
-        .unwrap();
+    store.create_session(Some("w".into()), session("w", Storage::F16)).await.unwrap();
     // One robot driving the corridor: frame i at time 0.5 * i.
     let frames: Vec<NewFrame> = query.iter().enumerate().map(|(i, d)| frame(None, "r1", 0.5 * i as f64, d)).collect();
     let ids = add(&store, "w", frames).await.unwrap();
@@ -263,21 +234,7 @@ async fn concurrent_writers_lose_nothing() {
     let dir = tempfile::tempdir().unwrap();
     {
         let store = std::sync::Arc::new(Store::open(dir.path()).unwrap());
-        store
-            .create_session(
-                Some("c".into()),
-                NewSession {
-                    name: "c".into(),
-                    dim: 2048,
-                    descriptor_id: "t".into(),
-                    storage: Storage::F16,
-                    default_query: LoopQuery::default(),
-                    camera: None,
-                    thumbnails: false,
-                },
-            )
-            .await
-            .unwrap();
+        store.create_session(Some("c".into()), session("c", Storage::F16)).await.unwrap();
         let (query, reference) = corridor();
         let tasks: Vec<_> = (0..8)
             .map(|w| {
@@ -314,50 +271,10 @@ async fn bad_writes_get_clear_errors_and_change_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let store = Store::open(dir.path()).unwrap();
     let (query, _) = corridor();
-    store
-        .create_session(
-            Some("b".into()),
-            NewSession {
-                name: "b".into(),
-                dim: 2048,
-                descriptor_id: "t".into(),
-                storage: Storage::F16,
-                default_query: LoopQuery::default(),
-                camera: None,
-                thumbnails: false,
-            },
-        )
-        .await
-        .unwrap();
-    let again = store
-        .create_session(
-            Some("b".into()),
-            NewSession {
-                name: "b".into(),
-                dim: 2048,
-                descriptor_id: "t".into(),
-                storage: Storage::F16,
-                default_query: LoopQuery::default(),
-                camera: None,
-                thumbnails: false,
-            },
-        )
-        .await;
+    store.create_session(Some("b".into()), session("b", Storage::F16)).await.unwrap();
+    let again = store.create_session(Some("b".into()), session("b", Storage::F16)).await;
     assert_eq!(again, Err(StoreError::SessionExists("b".into())));
-    let bad_id = store
-        .create_session(
-            Some("no spaces/".into()),
-            NewSession {
-                name: "x".into(),
-                dim: 2048,
-                descriptor_id: "t".into(),
-                storage: Storage::F16,
-                default_query: LoopQuery::default(),
-                camera: None,
-                thumbnails: false,
-            },
-        )
-        .await;
+    let bad_id = store.create_session(Some("no spaces/".into()), session("x", Storage::F16)).await;
     assert!(matches!(bad_id, Err(StoreError::InvalidArgument(_))));
     add(&store, "b", vec![frame(Some(7), "r", 0.0, &query[0])]).await.unwrap();
     // A batch with a taken id is refused whole: its other frame is not stored either.
@@ -510,21 +427,7 @@ async fn a_dropped_write_is_never_a_ghost() {
     let (query, _) = corridor();
     {
         let store = Store::open(dir.path()).unwrap();
-        store
-            .create_session(
-                Some("g".into()),
-                NewSession {
-                    name: "g".into(),
-                    dim: 2048,
-                    descriptor_id: "t".into(),
-                    storage: Storage::F16,
-                    default_query: LoopQuery::default(),
-                    camera: None,
-                    thumbnails: false,
-                },
-            )
-            .await
-            .unwrap();
+        store.create_session(Some("g".into()), session("g", Storage::F16)).await.unwrap();
         let s = store.session("g").unwrap();
         for i in 0..5u64 {
             // Polled once (the frame is written, its flush awaited), then dropped.

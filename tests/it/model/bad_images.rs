@@ -1,6 +1,5 @@
 //! Bad images get a clear error, never a panic, from the library and from the CLI.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::model::preprocess::{decode, ImageError, ImageLimits};
 
 fn crc32(bytes: &[u8]) -> u32 {

@@ -3,8 +3,7 @@
 //! per frame when the session asks for them (the same JPEG over both APIs), frames listed page by
 //! page, the similarity matrix agreeing with the scores answered, and the inlier matches of a
 //! verified loop kept with it. Bad input gets 400 / 404 with a reason.
-mod common;
-use common::*;
+use crate::common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::engine::EngineConfig;
 use loopd::pb;

@@ -3,8 +3,7 @@
 //! on; once space is back the server takes writes again without a restart. Then the disk is
 //! filled again and the process killed with SIGKILL while it is full: after space returns and it
 //! restarts, every acknowledged frame is there.
-mod common;
-use common::proc::Loopd;
+use crate::common::proc::Loopd;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 use tonic_health::pb::health_check_response::ServingStatus;

@@ -1,0 +1,5 @@
+mod inspect;
+mod loops;
+mod server;
+mod tenants;
+mod tls;

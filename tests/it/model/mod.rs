@@ -1,0 +1,3 @@
+mod bad_images;
+mod engine;
+mod network;

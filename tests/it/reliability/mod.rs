@@ -1,0 +1,4 @@
+mod crash;
+mod disk_full;
+mod overload;
+mod server;

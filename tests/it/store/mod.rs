@@ -1,0 +1,2 @@
+mod search_pool;
+mod sessions;
