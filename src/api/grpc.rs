@@ -45,6 +45,7 @@ fn overrides(o: Option<pb::QueryOptions>) -> Result<QueryOverrides, ApiError> {
     Ok(QueryOverrides {
         k: o.k.map(|k| k as usize),
         min_score: o.min_score,
+        min_confidence: o.min_confidence,
         exclude_last_frames: o.exclude_last_frames.map(|n| n as usize),
         exclude_last_seconds: o.exclude_last_seconds,
         scope,
@@ -112,7 +113,7 @@ fn session_to_pb(i: SessionInfo) -> pb::Session {
 
 fn matches_to_pb(m: Vec<LoopMatch>) -> Vec<pb::Match> {
     m.into_iter()
-        .map(|LoopMatch { m, verification, sequence }| pb::Match {
+        .map(|LoopMatch { m, verification, sequence, confidence, .. }| pb::Match {
             frame_id: m.frame_id,
             score: m.score,
             robot_id: m.robot_id,
@@ -125,6 +126,7 @@ fn matches_to_pb(m: Vec<LoopMatch>) -> Vec<pb::Match> {
                 length: s.length as u32,
                 verified: s.verified,
             }),
+            confidence,
         })
         .collect()
 }

@@ -20,6 +20,7 @@ pub fn loop_to_pb(l: LoopRecord) -> pb::Loop {
         match_time: l.match_time,
         score: l.score,
         rank: l.rank,
+        confidence: l.confidence,
         checked: l.checked,
         verified: l.verified,
         inliers: l.inliers,
@@ -47,6 +48,7 @@ pub async fn list(
     let filter = LoopFilter {
         robot: Some(r.robot_id).filter(|s| !s.is_empty()),
         min_score: r.min_score,
+        min_confidence: r.min_confidence,
         verified: r.verified,
         time_from: r.time_from,
         time_to: r.time_to,

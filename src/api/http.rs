@@ -99,6 +99,10 @@ struct Info {
     max_batch: usize,
     max_image_bytes: usize,
     version: &'static str,
+    /// The threshold of the calibrated confidence this server trusts as a loop (the calibrator's
+    /// `loop_confidence`: every training query's first candidate at or above it was right), or
+    /// null when its answers carry no confidence.
+    loop_confidence: Option<f32>,
 }
 
 async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
@@ -112,6 +116,7 @@ async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
         max_batch: e.config().max_batch,
         max_image_bytes: i.limits.max_bytes,
         version: env!("CARGO_PKG_VERSION"),
+        loop_confidence: s.service.calibrator.as_ref().map(|c| c.loop_confidence),
     })
 }
 

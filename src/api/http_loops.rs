@@ -17,6 +17,7 @@ const DEFAULT_PAGE: usize = 100;
 pub struct LoopParams {
     robot: Option<String>,
     min_score: Option<f32>,
+    min_confidence: Option<f32>,
     verified: Option<bool>,
     time_from: Option<f64>,
     time_to: Option<f64>,
@@ -48,6 +49,7 @@ pub async fn list_loops(
     let filter = LoopFilter {
         robot: p.robot,
         min_score: p.min_score,
+        min_confidence: p.min_confidence,
         verified: p.verified,
         time_from: p.time_from,
         time_to: p.time_to,

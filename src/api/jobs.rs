@@ -4,7 +4,7 @@ use super::error::ApiError;
 use super::service::{make_thumbnail, Content, FrameInput, LoopService, QueryOverrides};
 use crate::bags::{self, Selection};
 use crate::files::{is_image, natural_key};
-use crate::store::query::Scope;
+use crate::store::query::{LoopQuery, Scope};
 use crate::store::Store;
 use bytes::Bytes;
 use futures::StreamExt;
@@ -44,8 +44,22 @@ impl SeqFrame {
 pub struct SequenceRequest {
     pub frames: Vec<SeqFrame>,
     pub robot_id: String,
-    pub min_score: f32,
-    pub exclude_last_frames: usize,
+    /// The job's query options over the job defaults ([`job_defaults`]) and the session's.
+    pub options: QueryOverrides,
+}
+
+/// What a job asks of each frame unless the request says otherwise: its best candidate among
+/// the robot's own frames more than 3 frames back, checked geometrically and by sequence (one
+/// robot's trajectory), a loop when its confidence reaches the calibrator's `loop_confidence`.
+pub fn job_defaults() -> QueryOverrides {
+    QueryOverrides {
+        k: Some(1),
+        exclude_last_frames: Some(3),
+        scope: Some(Scope::SameRobot),
+        verify: Some(true),
+        sequence: Some(true),
+        ..Default::default()
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -56,7 +70,19 @@ pub struct LoopClosure {
     pub match_index: usize,
     pub match_name: String,
     pub match_frame_id: u64,
+    /// Cosine similarity of the descriptors.
     pub score: f32,
+    /// The calibrated confidence (absent without a calibrator for the session's descriptors).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub confidence: Option<f32>,
+    /// Geometric verification passed, with these inliers.
+    #[serde(default)]
+    pub verified: bool,
+    #[serde(default)]
+    pub inliers: u32,
+    /// The sequence check's margin, when it ran.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sequence_margin: Option<f32>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -124,6 +150,38 @@ fn bad_field(k: &str, v: &str) -> ApiError {
     ApiError::InvalidArgument(format!("field {k}: bad value '{v}'"))
 }
 
+/// A query option given as a form field (the names of the JSON `options` of a query); false when
+/// `k` names no option.
+fn set_option(o: &mut QueryOverrides, k: &str, v: &str) -> Result<bool, ApiError> {
+    fn num<T: std::str::FromStr>(k: &str, v: &str) -> Result<T, ApiError> {
+        v.trim().parse().map_err(|_| bad_field(k, v))
+    }
+    fn real(k: &str, v: &str) -> Result<f32, ApiError> {
+        num::<f32>(k, v).and_then(|x| if x.is_finite() { Ok(x) } else { Err(bad_field(k, v)) })
+    }
+    fn flag(k: &str, v: &str) -> Result<bool, ApiError> {
+        match v.trim() {
+            "true" | "1" | "on" => Ok(true),
+            "false" | "0" | "off" => Ok(false),
+            _ => Err(bad_field(k, v)),
+        }
+    }
+    match k {
+        "k" => o.k = Some(num(k, v)?),
+        "min_score" => o.min_score = Some(real(k, v)?),
+        "min_confidence" => o.min_confidence = Some(real(k, v)?),
+        "exclude_last_frames" => o.exclude_last_frames = Some(num(k, v)?),
+        "verify" => o.verify = Some(flag(k, v)?),
+        "verify_candidates" => o.verify_candidates = Some(num(k, v)?),
+        "min_inliers" => o.min_inliers = Some(num(k, v)?),
+        "sequence" => o.sequence = Some(flag(k, v)?),
+        "sequence_length" => o.sequence_length = Some(num(k, v)?),
+        "min_sequence_margin" => o.min_sequence_margin = Some(real(k, v)?),
+        _ => return Ok(false),
+    }
+    Ok(true)
+}
+
 /// A bag's frames (its parts in order: the files of a split rosbag2 bag).
 fn from_bag(parts: &[Bytes], sel: &Selection) -> Result<Vec<SeqFrame>, ApiError> {
     let limits = bags::Limits { max_frames: MAX_JOB_FRAMES, max_chunk_bytes: MAX_BAG_CHUNK_BYTES };
@@ -185,7 +243,7 @@ impl SequenceRequest {
                 frames.len()
             )));
         }
-        let mut req = SequenceRequest { frames, robot_id: "sequence".into(), min_score: 0.0, exclude_last_frames: 3 };
+        let mut req = SequenceRequest { frames, robot_id: "sequence".into(), options: QueryOverrides::default() };
         // Order is applied last, whatever the field order.
         let order = fields.remove("order");
         for (k, v) in fields {
@@ -195,13 +253,12 @@ impl SequenceRequest {
                     req.frames.iter_mut().for_each(|f| f.robot_id = None);
                     req.robot_id = v;
                 }
-                "min_score" => {
-                    req.min_score = v.parse().ok().filter(|s: &f32| s.is_finite()).ok_or_else(|| bad_field(&k, &v))?
-                }
-                "exclude_last_frames" => req.exclude_last_frames = v.parse().map_err(|_| bad_field(&k, &v))?,
+                _ if set_option(&mut req.options, &k, &v)? => {}
                 _ => return Err(bad_field(&k, &v)),
             }
         }
+        // Checked here, before the upload becomes a job: a bad option is a 400 with nothing made.
+        req.options.over(&job_defaults()).apply(&LoopQuery::default()).validate().map_err(ApiError::InvalidArgument)?;
         match order.as_deref() {
             Some("name") => req.frames.sort_by_cached_key(|f| natural_key(&f.name)),
             None | Some("sent") => {}
@@ -343,27 +400,40 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
     let held = service.store.session(&session).ok();
     let thumbnails = held.as_ref().is_some_and(|s| s.meta.thumbnails);
     let limits = engine.info().limits;
-    // Embedding (and thumbnails) run ahead in batches, order kept; adding and searching go one
-    // frame at a time.
+    // The options every frame is queried with: the request's over the job's defaults over the
+    // session's; the job's loops are the first candidates whose confidence reaches
+    // `min_confidence` (default: the calibrator's loop confidence), every candidate kept.
+    let defaults = held.as_ref().map(|s| s.meta.default_query.clone()).unwrap_or_default();
+    let asked = seq.options.over(&job_defaults());
+    let effective = asked.apply(&defaults);
+    let calibrated = service
+        .calibrator
+        .as_ref()
+        .filter(|_| held.as_ref().is_some_and(|s| engine.info().compatible(&s.meta.descriptor_id)));
+    let min_confidence = asked.min_confidence.unwrap_or_else(|| calibrated.map_or(0.0, |c| c.loop_confidence));
+    let opts = QueryOverrides { min_confidence: Some(0.0), ..asked };
+    let features = effective.verify.geometric || service.keeps_features();
+    // Embedding, feature extraction and thumbnails run ahead in batches, order kept; adding,
+    // searching and checking go one frame at a time, exactly as `add_and_query` answers a robot.
     let mut embedded = futures::stream::iter(seq.frames.into_iter().enumerate())
         .map(|(i, f)| {
-            let engine = engine.clone();
+            let (engine, verifier) = (engine.clone(), service.verifier.clone());
             async move {
                 let embed = engine.embed_image(f.image.clone(), crate::model::network::Variant::FULL);
-                let (result, thumbnail) = tokio::join!(embed, make_thumbnail(&f.image, limits, thumbnails));
-                (i, f.name, f.robot_id, f.timestamp, result, thumbnail)
+                let extract = async {
+                    match features {
+                        true => {
+                            verifier.extract(f.image.clone(), limits).await.map_err(|e| format!("no features: {e}"))
+                        }
+                        false => Err("feature extraction is off".to_string()),
+                    }
+                };
+                let (result, extracted, thumbnail) =
+                    tokio::join!(embed, extract, make_thumbnail(&f.image, limits, thumbnails));
+                (i, f.name, f.robot_id, f.timestamp, result.map(|d| (d, extracted)), thumbnail)
             }
         })
         .buffered(width);
-    let opts = QueryOverrides {
-        k: Some(1),
-        min_score: Some(seq.min_score),
-        exclude_last_frames: Some(seq.exclude_last_frames),
-        scope: Some(Scope::SameRobot),
-        // Frames reach the job as descriptors (embedded ahead in batches): nothing to check with.
-        verify: Some(false),
-        ..Default::default()
-    };
     let mut names: HashMap<u64, (usize, String)> = HashMap::new();
     let mut failed = None;
     let mut saved = std::time::Instant::now();
@@ -374,7 +444,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
             save(&service.store, &now).await;
             saved = std::time::Instant::now();
         }
-        let descriptor = match result {
+        let (descriptor, features) = match result {
             Ok(d) => d,
             Err(e) => {
                 let mut s = status.lock();
@@ -389,22 +459,28 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
             frame_id: None,
             pose: None,
             metadata: Some(serde_json::json!({ "name": name, "index": i })),
-            content: Content::Descriptor(descriptor),
+            content: Content::Embedded { descriptor, features },
             thumbnail,
         };
         match service.add_and_query(&session, frame, &opts).await {
             Ok((frame_id, matches)) => {
                 let mut s = status.lock();
-                if let Some(m) = matches.first().map(|c| &c.m) {
-                    if let Some((mi, mname)) = names.get(&m.frame_id) {
+                let first = matches.first().filter(|c| c.confidence.unwrap_or(1.0) >= min_confidence);
+                if let Some(c) = first {
+                    if let Some((mi, mname)) = names.get(&c.m.frame_id) {
+                        let v = c.verification.as_ref();
                         s.loops.push(LoopClosure {
                             query_index: i,
                             query_name: name.clone(),
                             query_frame_id: frame_id,
                             match_index: *mi,
                             match_name: mname.clone(),
-                            match_frame_id: m.frame_id,
-                            score: m.score,
+                            match_frame_id: c.m.frame_id,
+                            score: c.m.score,
+                            confidence: c.confidence,
+                            verified: v.is_some_and(|v| v.verified),
+                            inliers: v.map_or(0, |v| v.inliers as u32),
+                            sequence_margin: c.sequence.as_ref().map(|q| q.margin),
                         });
                     }
                 }

@@ -39,6 +39,7 @@ pub fn loop_records(q: QueryFrame<'_>, matches: &[LoopMatch]) -> Vec<LoopRecord>
                 match_time: m.m.timestamp,
                 score: m.m.score,
                 rank: rank as u32,
+                confidence: m.confidence,
                 checked: v.is_some(),
                 verified: v.is_some_and(|v| v.verified),
                 inliers: v.map_or(0, |v| v.inliers as u32),

@@ -12,6 +12,7 @@ use crate::model::Model;
 use crate::pb;
 use crate::store::pg::Replication;
 use crate::store::{Membership, SearchConfig, Store};
+use crate::verify::confidence::{Calibration, SHIPPED};
 use crate::verify::pool::VerifyConfig;
 use anyhow::{Context, Result};
 use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
@@ -39,6 +40,8 @@ pub struct ServerConfig {
     pub search: SearchConfig,
     /// Local features kept per frame and the workers that extract and check them.
     pub verify: VerifyConfig,
+    /// Where the calibrated confidence of this server's descriptors comes from.
+    pub calibration: Calibration,
     /// How long shutdown waits for open connections after streams were told to end; then they
     /// are cut (acknowledged frames are durable either way).
     pub shutdown_grace: std::time::Duration,
@@ -144,6 +147,7 @@ impl ServerConfig {
             max_jobs: 1,
             search: SearchConfig::default(),
             verify: VerifyConfig::default(),
+            calibration: Calibration::Shipped(SHIPPED.into()),
             shutdown_grace: std::time::Duration::from_secs(10),
             storage_retry: std::time::Duration::from_secs(2),
             connections: ConnectionConfig::default(),
@@ -227,6 +231,10 @@ impl RunningServer {
             }
         });
         let engine = Engine::start(model, cfg.engine.clone(), cfg.limits)?;
+        let calibrator = cfg.calibration.resolve(&engine.info().descriptor_id)?;
+        if let Some(c) = &calibrator {
+            tracing::info!(descriptor_id = %c.descriptor_id, loop_confidence = c.loop_confidence, "calibrated confidence");
+        }
         let auth = Arc::new(Auth::new(&cfg.auth, store.clone())?);
         let tls = match &cfg.tls {
             None => None,
@@ -262,7 +270,7 @@ impl RunningServer {
                             write and delete every session"
             );
         }
-        let service = LoopService::new(engine, store, cfg.max_jobs, cfg.verify.clone());
+        let service = LoopService::new(engine, store, cfg.max_jobs, cfg.verify.clone(), calibrator);
         let (shutdown, rx) = tokio::sync::watch::channel(false);
         if let Some(c) = &cfg.cluster {
             tokio::spawn(follow_cluster(auth.clone(), service.store.clone(), c.tenant_refresh, rx.clone()));

@@ -6,15 +6,16 @@ use super::loops::{loop_records, QueryFrame};
 use crate::engine::Engine;
 use crate::model::network::Variant;
 use crate::model::preprocess::ImageLimits;
-use crate::store::query::{LoopQuery, Pose, Scope, MAX_K};
+use crate::store::query::{LoopQuery, Pose, Scope};
 use crate::store::record::{Camera, FrameHeader};
 use crate::store::{NewFrame, NewSession, Session, SessionInfo, Storage, Store, MAX_CLIENT_FRAME_ID};
+use crate::verify::confidence::Calibrator;
 use crate::verify::features::Features;
 use crate::verify::geometric::{Intrinsics, VerifyParams};
 use crate::verify::pool::{Verifier, VerifyConfig};
 use crate::verify::sequence::{self, Place};
 pub use crate::verify::LoopMatch;
-use crate::verify::SequenceInputs;
+use crate::verify::{self, Checks, SequenceInputs};
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -25,6 +26,8 @@ pub struct LoopService {
     pub store: Arc<Store>,
     pub jobs: Arc<Jobs>,
     pub verifier: Verifier,
+    /// The confidence of this server's descriptor space (None: answers carry none).
+    pub calibrator: Option<Arc<Calibrator>>,
     /// Answers whose candidates could not be kept (storage failed after the frame was stored).
     pub loops_not_kept: Arc<std::sync::atomic::AtomicU64>,
 }
@@ -55,6 +58,12 @@ struct Prepared {
 pub enum Content {
     Image(Bytes),
     Descriptor(Vec<f32>),
+    /// An image of this server's model embedded, and its features extracted, ahead (sequence
+    /// jobs do both in batches): it is verified and kept like an image sent to `add_and_query`.
+    Embedded {
+        descriptor: Vec<f32>,
+        features: Result<Features, String>,
+    },
 }
 
 /// Query options as sent: unset fields fall back to the session's defaults.
@@ -63,6 +72,8 @@ pub enum Content {
 pub struct QueryOverrides {
     pub k: Option<usize>,
     pub min_score: Option<f32>,
+    /// Candidates below this calibrated confidence are not returned.
+    pub min_confidence: Option<f32>,
     pub exclude_last_frames: Option<usize>,
     pub exclude_last_seconds: Option<f64>,
     pub scope: Option<Scope>,
@@ -83,6 +94,26 @@ pub struct QueryOverrides {
 }
 
 impl QueryOverrides {
+    /// These options where set, `base`'s elsewhere.
+    pub fn over(&self, base: &QueryOverrides) -> QueryOverrides {
+        QueryOverrides {
+            k: self.k.or(base.k),
+            min_score: self.min_score.or(base.min_score),
+            min_confidence: self.min_confidence.or(base.min_confidence),
+            exclude_last_frames: self.exclude_last_frames.or(base.exclude_last_frames),
+            exclude_last_seconds: self.exclude_last_seconds.or(base.exclude_last_seconds),
+            scope: self.scope.or(base.scope),
+            time_range: self.time_range.or(base.time_range),
+            frame_id_range: self.frame_id_range.or(base.frame_id_range),
+            verify: self.verify.or(base.verify),
+            verify_candidates: self.verify_candidates.or(base.verify_candidates),
+            min_inliers: self.min_inliers.or(base.min_inliers),
+            sequence: self.sequence.or(base.sequence),
+            sequence_length: self.sequence_length.or(base.sequence_length),
+            min_sequence_margin: self.min_sequence_margin.or(base.min_sequence_margin),
+        }
+    }
+
     pub fn apply(&self, base: &LoopQuery) -> LoopQuery {
         let mut q = base.clone();
         if let Some(v) = self.k {
@@ -90,6 +121,9 @@ impl QueryOverrides {
         }
         if let Some(v) = self.min_score {
             q.min_score = v;
+        }
+        if let Some(v) = self.min_confidence {
+            q.min_confidence = v;
         }
         if let Some(v) = self.exclude_last_frames {
             q.exclude_last_frames = v;
@@ -244,9 +278,22 @@ fn intrinsics(c: &Camera) -> Intrinsics {
 }
 
 impl LoopService {
-    pub fn new(engine: Engine, store: Arc<Store>, max_jobs: usize, verify: VerifyConfig) -> Self {
+    pub fn new(
+        engine: Engine,
+        store: Arc<Store>,
+        max_jobs: usize,
+        verify: VerifyConfig,
+        calibrator: Option<Calibrator>,
+    ) -> Self {
         let jobs = Arc::new(Jobs::new(max_jobs, store.clone()));
-        let service = Self { engine, store, jobs, verifier: Verifier::new(verify), loops_not_kept: Default::default() };
+        let service = Self {
+            engine,
+            store,
+            jobs,
+            verifier: Verifier::new(verify),
+            calibrator: calibrator.map(Arc::new),
+            loops_not_kept: Default::default(),
+        };
         service.report_foreign_sessions();
         service
     }
@@ -342,6 +389,14 @@ impl LoopService {
                 let none = QueryFeatures::None("the query has no image (descriptor only)".into());
                 return Ok(Prepared { descriptor, features: none, thumbnail: None });
             }
+            Content::Embedded { descriptor, features } => {
+                self.check_space(s)?;
+                let features = match features {
+                    Ok(f) => QueryFeatures::Some(Arc::new(f)),
+                    Err(why) => QueryFeatures::None(why),
+                };
+                return Ok(Prepared { descriptor, features, thumbnail: None });
+            }
             Content::Image(bytes) => bytes,
         };
         self.check_space(s)?;
@@ -363,7 +418,7 @@ impl LoopService {
     }
 
     /// Whether frames keep their local features (the server's setting).
-    fn keeps_features(&self) -> bool {
+    pub fn keeps_features(&self) -> bool {
         self.verifier.config().max_feature_bytes > 0
     }
 
@@ -385,9 +440,29 @@ impl LoopService {
         ids.first().copied().ok_or_else(|| ApiError::Internal("no frame id returned".into()))
     }
 
+    /// The calibrator for a session's descriptors: the server's, when the session is in its
+    /// descriptor space.
+    fn calibrator_for(&self, s: &Session) -> Option<Arc<Calibrator>> {
+        self.calibrator.clone().filter(|_| self.engine.info().compatible(&s.meta.descriptor_id))
+    }
+
+    /// A query may ask for a minimum confidence only where confidences are calibrated.
+    fn check_confidence(&self, s: &Session, q: &LoopQuery) -> Result<(), ApiError> {
+        if q.min_confidence > 0.0 && self.calibrator_for(s).is_none() {
+            return Err(ApiError::FailedPrecondition(format!(
+                "min_confidence needs a calibrated confidence, and this server has no calibrator for the \
+                 descriptors of session '{}' ({}): leave it at 0 (or start the server with a calibration \
+                 file that covers them)",
+                s.meta.id, s.meta.descriptor_id
+            )));
+        }
+        Ok(())
+    }
+
     /// Ranked candidates: the store's best descriptor matches, the first K of them checked
     /// geometrically and all of them by sequence when the query asks for it, then ordered by the
-    /// one decision rule. Also the query's best matches by descriptor: its sequence votes.
+    /// one decision rule, each with its confidence. Also the query's best matches by descriptor:
+    /// its sequence votes.
     async fn search(
         &self,
         s: &Arc<Session>,
@@ -397,19 +472,19 @@ impl LoopService {
         q: &LoopQuery,
     ) -> Result<(Vec<LoopMatch>, Vec<u64>), ApiError> {
         let v = &q.verify;
-        let pool = [
-            q.k,
-            sequence::VOTES,
-            if v.geometric { v.candidates } else { 0 },
-            if v.sequence { sequence::POOL } else { 0 },
-        ];
-        let wide = LoopQuery { k: pool.into_iter().max().unwrap_or(q.k).min(MAX_K), ..q.clone() };
+        let wide = LoopQuery { k: verify::search_width(q), ..q.clone() };
         let query_descriptor = v.sequence.then(|| descriptor.clone());
         let mut matches = self.store.query(s, descriptor, &wide).await?;
         let votes = matches.iter().take(sequence::VOTES).map(|m| m.frame_id).collect();
+        let calibrator = self.calibrator_for(s);
+        let place = |(robot, position)| Place { robot, position };
         if !v.geometric && !v.sequence {
-            matches.truncate(q.k);
-            let plain = matches.into_iter().map(|m| LoopMatch { m, verification: None, sequence: None }).collect();
+            let ids: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
+            let places = s.places(&ids).into_iter().map(place).collect();
+            let candidates = matches.into_iter().map(|m| (m, None)).collect();
+            let mut plain = verify::check(None, candidates, &Checks::none(places, calibrator));
+            plain.retain(|m| m.confidence.is_none_or(|c| c >= q.min_confidence));
+            plain.truncate(q.k);
             return Ok((plain, votes));
         }
         if let Some(d) = &query_descriptor {
@@ -428,23 +503,36 @@ impl LoopService {
             QueryFeatures::Some(f) => Ok(f.clone()),
             QueryFeatures::None(why) => Err(why.clone()),
         });
+        let ids: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
+        let l = v.sequence_length;
+        let (places, trails, tail) = s.trails(
+            &ids,
+            if v.sequence { l } else { 0 },
+            match &history {
+                History::Live(robot) if v.sequence => robot.as_deref(),
+                _ => None,
+            },
+        );
+        let places: Vec<Place> = places.into_iter().map(place).collect();
         let seq = query_descriptor.map(|query_descriptor| {
-            let ids: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
-            let l = v.sequence_length;
-            let (history, places, trails) = match &history {
-                History::Stored(id) => {
-                    let (places, trails, _) = s.trails(&ids, l, None);
-                    (s.trails(&[*id], l, None).1.pop().unwrap_or_default(), places, trails)
-                }
-                History::Live(robot) => {
-                    let (places, trails, mut tail) = s.trails(&ids, l, robot.as_deref());
+            let history = match &history {
+                History::Stored(id) => s.trails(&[*id], l, None).1.pop().unwrap_or_default(),
+                History::Live(_) => {
+                    let mut tail = tail;
                     tail.drain(..tail.len().saturating_sub(l - 1));
                     tail.push(query_descriptor);
-                    (tail, places, trails)
+                    tail
                 }
             };
-            let places = places.into_iter().map(|(robot, position)| Place { robot, position }).collect();
-            SequenceInputs { history, trails, places, min_margin: v.min_sequence_margin }
+            let stats = s.row_stats(&history, q);
+            SequenceInputs {
+                history,
+                stats,
+                trails,
+                places: places.clone(),
+                min_margin: v.min_sequence_margin,
+                length: l,
+            }
         });
         let mut candidates = Vec::with_capacity(matches.len());
         for (i, m) in matches.into_iter().enumerate() {
@@ -454,8 +542,9 @@ impl LoopService {
         }
         let camera = s.meta.camera.as_ref().map(intrinsics);
         let params = VerifyParams { min_inliers: v.min_inliers, ..Default::default() };
-        let mut out =
-            self.verifier.check(query, candidates, checked, camera, params, seq).await.map_err(ApiError::Internal)?;
+        let checks = Checks { checked, camera, params, seq, places, calibrator };
+        let mut out = self.verifier.check(query, candidates, checks).await.map_err(ApiError::Internal)?;
+        out.retain(|m| m.confidence.is_none_or(|c| c >= q.min_confidence));
         out.truncate(q.k);
         Ok((out, votes))
     }
@@ -476,6 +565,7 @@ impl LoopService {
         }
         q.at_time = at_time;
         q.validate().map_err(ApiError::InvalidArgument)?;
+        self.check_confidence(&s, &q)?;
         match target {
             QueryTarget::Frame(id) => {
                 let stored = s.features(id)?.and_then(|b| Features::decode(&b).ok());
@@ -511,6 +601,7 @@ impl LoopService {
         q.robot_id = Some(f.robot_id.clone());
         q.at_time = Some(t);
         q.validate().map_err(ApiError::InvalidArgument)?;
+        self.check_confidence(&s, &q)?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
         let features = q.verify.geometric || self.keeps_features();
         let prepared = self.prepare(&s, content, features, s.meta.thumbnails).await?;
@@ -540,6 +631,8 @@ impl LoopService {
         let s = self.store.session(session)?;
         self.check_space(&s)?;
         check_robot_id(&seq.robot_id)?;
+        let asked = seq.options.over(&super::jobs::job_defaults()).apply(&s.meta.default_query);
+        self.check_confidence(&s, &asked)?;
         let id = self.jobs.start(self.clone(), s.meta.id.clone(), seq).await?;
         self.store.durable_records().await?;
         Ok(id)

@@ -74,6 +74,10 @@ pub struct EvalArgs {
     /// Descriptor cache (a rerun with other search settings does not embed again).
     #[arg(long, default_value = ".loopd-cache")]
     pub cache_dir: PathBuf,
+    /// Write every answered candidate's evidence (what its confidence is computed from) and its
+    /// ground truth here, one JSON line each: the input of `loopd calibrate` (training sets only).
+    #[arg(long)]
+    pub samples_out: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -99,7 +103,7 @@ fn parse_intrinsics(s: &str) -> Result<Intrinsics, String> {
 pub fn run(a: EvalArgs) -> Result<ExitCode> {
     if let (Some(server), Some(session)) = (&a.server, &a.session) {
         let rt = tokio::runtime::Runtime::new()?;
-        let (frames, report) = rt.block_on(crate::eval::remote::evaluate_session(
+        let (frames, report, confidence) = rt.block_on(crate::eval::remote::evaluate_session(
             server,
             session,
             &a.gt,
@@ -113,6 +117,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
             ("session", session.as_str().into()),
             ("frames", frames.into()),
             ("exclude", a.exclude.into()),
+            ("confidence", serde_json::to_value(&confidence)?),
         ] {
             out[k] = v;
         }
@@ -145,9 +150,11 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         out: a.out.as_deref(),
         filter: a.filter.as_deref(),
         range: a.range.clone(),
+        calibrator: None,
+        samples_out: a.samples_out.as_deref(),
     };
     let variant = a.variant.variant();
-    let out = run_eval(model, &spec, &a.model.weights, variant, Some(&a.cache_dir))?;
+    let out = run_eval(model, &spec, &a.model.weights, variant, Some(&a.cache_dir), &a.model.calibration())?;
     if a.json {
         println!("{}", serde_json::to_string(&out)?);
     } else {
@@ -159,6 +166,20 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
             r.recall_at_100_precision, r.threshold_at_100_precision
         );
         println!("recall@1 {:.4}   average precision {:.4}", r.recall_at_1, r.average_precision);
+        if let Some(c) = &out.confidence {
+            println!(
+                "by confidence: recall@100%precision {:.4} (threshold {:?}), recall@99%precision {:.4}, \
+                 first wrong answer at {:?}, ECE {:.4}",
+                c.recall_at_100_precision,
+                c.threshold_at_100_precision,
+                c.recall_at_99_precision,
+                c.first_false_confidence,
+                c.expected_calibration_error
+            );
+            if let Some((t, p, r)) = c.at_loop_confidence {
+                println!("at the loop confidence {t:.2}: precision {p:.4}, recall {r:.4}");
+            }
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

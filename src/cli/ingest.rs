@@ -32,9 +32,19 @@ pub struct IngestArgs {
     /// robot1, else "sequence").
     #[arg(long)]
     robot_id: Option<String>,
-    /// Loops scoring below this are not reported.
+    /// Loops scoring below this cosine are not reported.
     #[arg(long)]
     min_score: Option<f32>,
+    /// Loops below this calibrated confidence are not reported (default: the server's loop
+    /// confidence, /v1/info).
+    #[arg(long)]
+    min_confidence: Option<f32>,
+    /// Check loops geometrically (ORB + RANSAC): true (the job default) or false.
+    #[arg(long)]
+    verify: Option<bool>,
+    /// Check loops by sequence (the frames before query and candidate): true (the job default) or false.
+    #[arg(long)]
+    sequence: Option<bool>,
     /// Frames just before a query that are never its loop.
     #[arg(long)]
     exclude_last_frames: Option<usize>,
@@ -94,16 +104,27 @@ fn list_topics(files: &[PathBuf]) -> Result<()> {
     Ok(())
 }
 
-fn ensure_session(remote: &Remote, id: &str, thumbnails: bool) -> Result<()> {
+/// Creates the session unless it exists; true when this call created it.
+fn ensure_session(remote: &Remote, id: &str, thumbnails: bool) -> Result<bool> {
     let create = remote.client.post(format!("{}/v1/sessions", remote.base));
     let r = remote.call(create.json(&serde_json::json!({ "id": id, "name": id, "thumbnails": thumbnails })))?;
     if r.status() == reqwest::StatusCode::CONFLICT {
-        return Ok(()); // it exists: the frames go on after its own
+        return Ok(false); // it exists: the frames go on after its own
     }
     if !r.status().is_success() {
         return Err(failed(r).context(format!("creating session {id}")));
     }
-    Ok(())
+    Ok(true)
+}
+
+/// Takes back a session this run created for an upload the server refused (nothing in it).
+fn remove_session(remote: &Remote, id: &str) {
+    let delete = remote.client.delete(format!("{}/v1/sessions/{id}", remote.base));
+    match remote.call(delete) {
+        Ok(r) if r.status().is_success() => {}
+        Ok(r) => eprintln!("warning: the empty session {id} was not removed: {}", failed(r)),
+        Err(e) => eprintln!("warning: the empty session {id} was not removed: {e:#}"),
+    }
 }
 
 fn upload(remote: &Remote, a: &IngestArgs, session: &str, files: &[PathBuf]) -> Result<String> {
@@ -113,7 +134,14 @@ fn upload(remote: &Remote, a: &IngestArgs, session: &str, files: &[PathBuf]) -> 
     if !a.topic.is_empty() {
         form = form.text("topic", a.topic.join(","));
     }
-    for (k, v) in [("robot_id", a.robot_id.clone()), ("min_score", a.min_score.map(|s| s.to_string()))] {
+    let options = [
+        ("robot_id", a.robot_id.clone()),
+        ("min_score", a.min_score.map(|s| s.to_string())),
+        ("min_confidence", a.min_confidence.map(|s| s.to_string())),
+        ("verify", a.verify.map(|s| s.to_string())),
+        ("sequence", a.sequence.map(|s| s.to_string())),
+    ];
+    for (k, v) in options {
         if let Some(v) = v {
             form = form.text(k, v);
         }
@@ -155,14 +183,24 @@ pub fn run(a: IngestArgs) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     };
     let remote = a.remote.connect()?;
-    ensure_session(&remote, &session, a.thumbnails)?;
-    let job = upload(&remote, &a, &session, &files)?;
+    let created = ensure_session(&remote, &session, a.thumbnails)?;
+    let job = match upload(&remote, &a, &session, &files) {
+        Ok(job) => job,
+        Err(e) => {
+            // Refused (a broken bag, a bad option): a session made for it goes again.
+            if created {
+                remove_session(&remote, &session);
+            }
+            return Err(e);
+        }
+    };
     let s = wait(&remote, &job)?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&s)?);
     } else {
         for l in &s.loops {
-            println!("{:<32} -> {:<32} {:.3}", l.query_name, l.match_name, l.score);
+            let confidence = l.confidence.map_or_else(|| "-".to_string(), |c| format!("{c:.3}"));
+            println!("{:<32} -> {:<32} {:.3} confidence {confidence}", l.query_name, l.match_name, l.score);
         }
         eprintln!(
             "{job}: {:?}, {} of {} frames, {} loops, {} errors",

@@ -1,4 +1,5 @@
 //! Command-line interface: one file per subcommand.
+mod calibrate;
 mod classify;
 mod embed;
 mod eval;
@@ -43,6 +44,8 @@ pub enum Command {
     Embed(embed::EmbedArgs),
     /// Recall at 100% precision, PR curve and similarity matrix on a sequence with ground truth.
     Eval(eval::EvalArgs),
+    /// Fit the calibrated loop confidence of a model on training candidates (`eval --samples-out`).
+    Calibrate(calibrate::CalibrateArgs),
     /// Train the attention/fusion heads (and whitening) on real data; writes a heads file.
     Train(train::TrainArgs),
     /// Tenants and their API keys, through a running server (admin key).
@@ -85,6 +88,11 @@ pub struct ModelArgs {
     /// stretch to the input size, or keep the aspect ratio inside it.
     #[arg(long, env = "LOOPD_RESIZE", value_enum, default_value = "stretch")]
     pub resize: ResizeMode,
+    /// The calibrated loop confidence (a file of `loopd calibrate`: one calibrator per descriptor
+    /// space; docs/evaluation.md). A file given here must hold one for this model; the shipped one
+    /// covers the shipped heads and the plain backbone at 224. "none": answers carry no confidence.
+    #[arg(long, env = "LOOPD_CALIBRATION", default_value = crate::verify::confidence::SHIPPED)]
+    pub calibration: String,
 }
 
 impl ModelArgs {
@@ -109,6 +117,10 @@ impl ModelArgs {
         }
         tracing::debug!(?report, device = ?model.device, "model loaded");
         Ok(model)
+    }
+
+    pub fn calibration(&self) -> crate::verify::confidence::Calibration {
+        crate::verify::confidence::Calibration::parse(&self.calibration)
     }
 
     /// The heads file to load, if any.
@@ -141,6 +153,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Classify(a) => classify::run(a),
         Command::Embed(a) => embed::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Calibrate(a) => calibrate::run(a),
         Command::Train(a) => train::run(a),
         Command::Tenant(a) => tenant::run(a),
         Command::Export(a) => export::run(a),

@@ -229,6 +229,7 @@ impl ServeArgs {
                 request_timeout: Duration::from_secs_f64(self.request_timeout_secs.clamp(0.1, 86400.0)),
                 max_connections: self.max_connections.max(1),
             },
+            calibration: self.model.calibration(),
             verify: {
                 let defaults = VerifyConfig::default();
                 VerifyConfig {

@@ -79,6 +79,97 @@ pub fn evaluate(results: &[QueryResult], gt: &GroundTruth, tolerance: usize) -> 
     }
 }
 
+/// One bin of a reliability diagram: candidates whose confidence fell in [lo, hi).
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct ReliabilityBin {
+    pub lo: f32,
+    pub hi: f32,
+    pub count: usize,
+    pub mean_confidence: f64,
+    /// The share of them that were true loops.
+    pub frequency: f64,
+}
+
+/// The protocol swept over the calibrated confidence of each query's first candidate, and how
+/// well the confidence is calibrated (docs/evaluation.md).
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct ConfidenceReport {
+    pub recall_at_100_precision: f64,
+    /// The lowest confidence that keeps precision at 100%.
+    pub threshold_at_100_precision: Option<f32>,
+    pub recall_at_99_precision: f64,
+    /// The confidence of the most confident wrong first candidate: below it precision is no
+    /// longer 1 (None: no first candidate was wrong).
+    pub first_false_confidence: Option<f32>,
+    pub average_precision: f64,
+    /// At the calibrator's loop confidence: (threshold, precision, recall).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub at_loop_confidence: Option<(f32, f64, f64)>,
+    /// Expected calibration error over every answered candidate (10 equal bins).
+    pub expected_calibration_error: f64,
+    pub reliability: Vec<ReliabilityBin>,
+}
+
+/// `first`: each query's first candidate with its confidence as the score; `candidates`: every
+/// answered candidate's (confidence, true loop).
+pub fn evaluate_confidence(
+    first: &[QueryResult],
+    gt: &GroundTruth,
+    tolerance: usize,
+    candidates: &[(f32, bool)],
+    loop_confidence: Option<f32>,
+) -> ConfidenceReport {
+    let r = evaluate(first, gt, tolerance);
+    let r99 = r.pr_curve.iter().filter(|p| p.precision >= 0.99).map(|p| p.recall).fold(0f64, f64::max);
+    let first_false = first
+        .iter()
+        .filter_map(|q| q.best.filter(|&(reference, _)| !gt.is_match(q.query, reference, tolerance)).map(|b| b.1))
+        .fold(None, |m: Option<f32>, s| Some(m.map_or(s, |m| m.max(s))));
+    let at_loop = loop_confidence.map(|t| {
+        let accepted: Vec<bool> = first
+            .iter()
+            .filter_map(|q| {
+                q.best.filter(|b| b.1 >= t).map(|(reference, _)| gt.is_match(q.query, reference, tolerance))
+            })
+            .collect();
+        let tp = accepted.iter().filter(|&&x| x).count();
+        let precision = if accepted.is_empty() { 1.0 } else { tp as f64 / accepted.len() as f64 };
+        (t, precision, tp as f64 / r.positives.max(1) as f64)
+    });
+    let mut bins: Vec<ReliabilityBin> = (0..10)
+        .map(|b| ReliabilityBin {
+            lo: b as f32 / 10.0,
+            hi: (b + 1) as f32 / 10.0,
+            count: 0,
+            mean_confidence: 0.0,
+            frequency: 0.0,
+        })
+        .collect();
+    for &(c, truth) in candidates {
+        let b = &mut bins[((c * 10.0) as usize).min(9)];
+        b.count += 1;
+        b.mean_confidence += c as f64;
+        b.frequency += truth as u8 as f64;
+    }
+    let total = candidates.len().max(1) as f64;
+    let mut ece = 0.0;
+    for b in bins.iter_mut().filter(|b| b.count > 0) {
+        b.mean_confidence /= b.count as f64;
+        b.frequency /= b.count as f64;
+        ece += b.count as f64 / total * (b.mean_confidence - b.frequency).abs();
+    }
+    ConfidenceReport {
+        recall_at_100_precision: r.recall_at_100_precision,
+        threshold_at_100_precision: r.threshold_at_100_precision,
+        recall_at_99_precision: r99,
+        first_false_confidence: first_false,
+        average_precision: r.average_precision,
+        at_loop_confidence: at_loop,
+        expected_calibration_error: ece,
+        reliability: bins,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -121,6 +212,20 @@ mod tests {
         let rep = evaluate(&[q(5, 1, 0.8), q(6, 9, 0.8)], &g, 0);
         assert_eq!(rep.recall_at_100_precision, 0.0);
         assert_eq!(rep.pr_curve, vec![PrPoint { threshold: 0.8, precision: 0.5, recall: 0.5 }]);
+    }
+
+    #[test]
+    fn the_confidence_sweep_and_its_calibration() {
+        let g = gt(&[(10, 1), (11, 2), (12, 3), (13, 4)]);
+        let r = [q(10, 1, 0.95), q(11, 2, 0.90), q(14, 5, 0.80), q(12, 3, 0.70), q(13, 9, 0.60)];
+        let cands = [(0.95, true), (0.92, true), (0.85, false), (0.75, true), (0.65, false), (0.05, false)];
+        let c = evaluate_confidence(&r, &g, 0, &cands, Some(0.85));
+        assert_eq!((c.recall_at_100_precision, c.first_false_confidence), (0.5, Some(0.80)));
+        assert_eq!(c.at_loop_confidence, Some((0.85, 1.0, 0.5)));
+        // Bins: 0.0 (0.05 false), 0.6 (0.65 false), 0.7 (0.75 true), 0.8 (0.85 false), 0.9 (0.92, 0.95 true).
+        let ece = (0.05 + 0.65 + 0.25 + 0.85 + (1.0 - 0.935) * 2.0) / 6.0;
+        assert!((c.expected_calibration_error - ece).abs() < 1e-6, "{}", c.expected_calibration_error);
+        assert_eq!(c.reliability.iter().map(|b| b.count).sum::<usize>(), 6);
     }
 
     #[test]

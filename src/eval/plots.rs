@@ -94,3 +94,40 @@ pub fn lines(path: &Path, title: &str, axes: (&str, &str), series: &[(String, Ve
     root.present().map_err(err)?;
     Ok(())
 }
+
+/// Reliability diagrams, one series per set: each bin's mean confidence against the share of its
+/// candidates that were true loops (the diagonal is perfect calibration); the bins' counts in
+/// the legend's name are the caller's.
+pub fn reliability(path: &Path, title: &str, series: &[(String, Vec<super::metrics::ReliabilityBin>)]) -> Result<()> {
+    let root = BitMapBackend::new(path, (800, 640)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(55)
+        .build_cartesian_2d(0f64..1.0, 0f64..1.0)
+        .map_err(err)?;
+    chart.configure_mesh().x_desc("confidence (bin mean)").y_desc("share of true loops").draw().map_err(err)?;
+    chart.draw_series(LineSeries::new(vec![(0.0, 0.0), (1.0, 1.0)], BLACK.mix(0.4))).map_err(err)?;
+    for (i, (name, bins)) in series.iter().enumerate() {
+        let color = Palette99::pick(i).to_rgba();
+        let pts: Vec<(f64, f64)> =
+            bins.iter().filter(|b| b.count > 0).map(|b| (b.mean_confidence, b.frequency)).collect();
+        chart
+            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
+            .map_err(err)?
+            .label(name.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+        chart.draw_series(pts.into_iter().map(|p| Circle::new(p, 4, color.filled()))).map_err(err)?;
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(err)?;
+    root.present().map_err(err)?;
+    Ok(())
+}

@@ -5,7 +5,7 @@
 //! sequence job and a single robot with server-assigned ids produce); ground-truth indices refer
 //! to that order.
 use super::gt::GroundTruth;
-use super::metrics::{evaluate, QueryResult, Report};
+use super::metrics::{evaluate, evaluate_confidence, ConfidenceReport, QueryResult, Report};
 use crate::pb;
 use anyhow::{bail, Context, Result};
 
@@ -16,7 +16,7 @@ pub async fn evaluate_session(
     camera: Option<usize>,
     tolerance: usize,
     exclude: usize,
-) -> Result<(usize, Report)> {
+) -> Result<(usize, Report, Option<ConfidenceReport>)> {
     let url = if server.starts_with("http") { server.to_string() } else { format!("http://{server}") };
     let mut client =
         pb::loopd_client::LoopdClient::connect(url.clone()).await.with_context(|| format!("connecting to {url}"))?;
@@ -28,10 +28,14 @@ pub async fn evaluate_session(
     let gt = GroundTruth::load(gt, camera, n)?;
     let bar = indicatif::ProgressBar::new(n as u64);
     let mut results = Vec::with_capacity(n);
+    // The server's calibrated confidence of each first candidate, when it gives one.
+    let mut confident = Vec::with_capacity(n);
+    let mut scored = Vec::new();
     for i in 0..n {
         bar.inc(1);
         if i <= exclude {
             results.push(QueryResult { query: i, best: None });
+            confident.push(QueryResult { query: i, best: None });
             continue;
         }
         let options = pb::QueryOptions {
@@ -54,7 +58,13 @@ pub async fn evaluate_session(
             .into_inner()
             .matches;
         results.push(QueryResult { query: i, best: m.first().map(|m| (m.frame_id as usize, m.score)) });
+        let first = m.first().and_then(|m| m.confidence.map(|c| (m.frame_id as usize, c)));
+        if let Some((frame, c)) = first {
+            scored.push((c, gt.is_match(i, frame, tolerance)));
+        }
+        confident.push(QueryResult { query: i, best: first });
     }
     bar.finish_and_clear();
-    Ok((n, evaluate(&results, &gt, tolerance)))
+    let confidence = (!scored.is_empty()).then(|| evaluate_confidence(&confident, &gt, tolerance, &scored, None));
+    Ok((n, evaluate(&results, &gt, tolerance), confidence))
 }

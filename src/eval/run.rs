@@ -1,7 +1,7 @@
 //! `loopd eval`: embed a sequence (or two traversals) through the engine, search with the
 //! store's index, score against the ground truth, write the report and figures.
 use super::gt::GroundTruth;
-use super::metrics::{evaluate, QueryResult, Report};
+use super::metrics::{evaluate, evaluate_confidence, ConfidenceReport, QueryResult, Report};
 use super::plots;
 use crate::engine::{Engine, EngineConfig};
 use crate::model::network::Variant;
@@ -12,10 +12,11 @@ use crate::store::query::{LoopQuery, VerifyOptions};
 use crate::store::Storage;
 use crate::verify::{
     self,
+    confidence::{Calibration, Calibrator, Sample},
     features::{from_image_bytes, FeatureParams, Features},
     geometric::{Intrinsics, VerifyParams},
     sequence::Place,
-    SequenceInputs,
+    Checks, SequenceInputs,
 };
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -153,6 +154,7 @@ pub fn embed_files(engine: &Engine, files: &[PathBuf], setup: &EmbedSetup, label
     Ok(out)
 }
 
+#[derive(Clone)]
 pub struct EvalSpec<'a> {
     /// Candidates checked as the server checks them (None: descriptor ranking only).
     pub verify: Option<VerifyOptions>,
@@ -169,6 +171,10 @@ pub struct EvalSpec<'a> {
     /// Only frames with these indices (natural name order) of each sequence; the ground truth
     /// is windowed to them (e.g. a validation range of places).
     pub range: Option<std::ops::Range<usize>>,
+    /// Scores every candidate's confidence (the server's calibrator for these descriptors).
+    pub calibrator: Option<std::sync::Arc<Calibrator>>,
+    /// Every answered candidate's evidence and ground truth, one JSON line each (`loopd calibrate`).
+    pub samples_out: Option<&'a Path>,
 }
 
 #[derive(Serialize)]
@@ -189,8 +195,18 @@ pub struct EvalOutput {
     /// Each query's best candidate after verification: [frame, score] (score as the decision rule
     /// ranks it: cosine, or 1 + inliers when verified), null when it had none.
     pub best: Vec<Option<(usize, f32)>>,
+    /// Each query's best candidate's calibrated confidence (null without a calibrator).
+    pub best_confidence: Vec<Option<f32>>,
+    /// Whether each query's best candidate is a true loop (null: no candidate).
+    pub best_correct: Vec<Option<bool>>,
     #[serde(flatten)]
     pub report: Report,
+    /// The calibrator's descriptor space, when one scored the candidates.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibrator: Option<String>,
+    /// The same protocol swept over the confidence of each query's first candidate.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub confidence: Option<ConfidenceReport>,
 }
 
 /// Runs one evaluation with an already started engine.
@@ -215,9 +231,12 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         index.push(i as u64, "ref", i as f64, None, d);
     }
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // Every query goes through `verify::check`, as the server's do: descriptor ranking alone is
+    // the case with no check asked for.
+    let v = spec.verify.clone().unwrap_or(VerifyOptions { geometric: false, sequence: false, ..Default::default() });
+    let width = verify::search_width(&LoopQuery { k: 1, verify: v.clone(), ..Default::default() });
     // The query of frame i: its descriptor and the options of its search.
-    let query_of = |i: usize| -> Option<(&Vec<f32>, LoopQuery)> {
-        let k = spec.verify.as_ref().map_or(1, |v| v.candidates);
+    let query_of = |i: usize, k: usize| -> Option<(&Vec<f32>, LoopQuery)> {
         match &query_desc {
             Some(qd) => Some((&qd[i], LoopQuery { k, ..Default::default() })),
             // One sequence: only earlier frames outside the exclusion window.
@@ -228,95 +247,116 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
             None => None,
         }
     };
-    let results: Vec<QueryResult> = match (&spec.verify, &query_desc) {
-        (Some(v), _) => {
-            let features = |files: &[PathBuf], label: &str| -> Result<Vec<Result<Features, String>>> {
-                if v.geometric {
-                    extract_all(files, label)
-                } else {
-                    Ok(Vec::new())
-                }
-            };
-            let ref_features = features(&refs, "reference features")?;
-            let query_features = match &queries {
-                Some(q) => Some(features(q, "query features")?),
-                None => None,
-            };
-            let params = VerifyParams { min_inliers: v.min_inliers, ..Default::default() };
-            let pool =
-                [v.candidates, if v.sequence { verify::sequence::POOL } else { 0 }].into_iter().max().unwrap_or(1);
-            let past = query_desc.as_ref().unwrap_or(&ref_desc);
-            // Each frame's own best matches (what a robot got back for it when it was new).
-            let past_top: Vec<Vec<u64>> = (0..nq)
-                .map(|i| match query_of(i) {
-                    Some((q, opts)) => index
-                        .search(q, &LoopQuery { k: verify::sequence::VOTES, ..opts }, threads)
-                        .iter()
-                        .map(|m| m.frame_id)
-                        .collect(),
-                    None => Vec::new(),
-                })
-                .collect();
-            (0..nq)
-                .map(|i| {
-                    let Some((q, mut opts)) = query_of(i) else { return QueryResult { query: i, best: None } };
-                    opts.k = pool;
-                    let mut matches = index.search(q, &opts, threads);
-                    if v.sequence {
-                        // Where the query's past says it is now, beside what looks most alike now.
-                        let past_votes = &past_top[(i + 1).saturating_sub(v.sequence_length)..i];
-                        let have: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
-                        let ids: Vec<u64> = verify::sequence::voted(past_votes, |id, steps| index.advance(id, steps))
-                            .into_iter()
-                            .filter(|id| !have.contains(id))
-                            .collect();
-                        matches.extend(index.score_frames(q, &ids, &opts));
-                    }
-                    let seq = v.sequence.then(|| {
-                        let l = v.sequence_length;
-                        let ids: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
-                        SequenceInputs {
-                            history: past[(i + 1).saturating_sub(l)..=i].to_vec(),
-                            trails: ids.iter().map(|&id| index.trail(id, l)).collect(),
-                            places: ids.iter().map(|&id| Place { robot: 0, position: id as usize }).collect(),
-                            min_margin: v.min_sequence_margin,
-                        }
-                    });
-                    let qf = v
-                        .geometric
-                        .then(|| query_features.as_ref().unwrap_or(&ref_features)[i].as_ref().map_err(String::as_str));
-                    let candidates = matches
-                        .into_iter()
-                        .map(|m| {
-                            let f = ref_features.get(m.frame_id as usize).and_then(|f| f.clone().ok());
-                            (m, f)
-                        })
-                        .collect();
-                    let checked = if v.geometric { v.candidates } else { 0 };
-                    let ranked =
-                        verify::check(qf, candidates, checked, spec.intrinsics.as_ref(), &params, seq.as_ref());
-                    let best = ranked.first().map(|c| (c.m.frame_id as usize, verify::rank_score(c)));
-                    QueryResult { query: i, best }
-                })
-                .collect()
+    let features = |files: &[PathBuf], label: &str| -> Result<Vec<Result<Features, String>>> {
+        if v.geometric {
+            extract_all(files, label)
+        } else {
+            Ok(Vec::new())
         }
-        // Two traversals: every query has the same options, so they go as one batch.
-        (None, Some(qd)) => index
-            .search_batch(qd, &LoopQuery { k: 1, ..Default::default() }, threads)
-            .iter()
-            .enumerate()
-            .map(|(i, m)| QueryResult { query: i, best: m.first().map(|m| (m.frame_id as usize, m.score)) })
-            .collect(),
-        (None, None) => (0..nq)
-            .map(|i| {
-                let best = query_of(i)
-                    .and_then(|(q, opts)| index.search(q, &opts, 1).first().map(|m| (m.frame_id as usize, m.score)));
-                QueryResult { query: i, best }
+    };
+    let ref_features = features(&refs, "reference features")?;
+    let query_features = match &queries {
+        Some(q) => Some(features(q, "query features")?),
+        None => None,
+    };
+    let params = VerifyParams { min_inliers: v.min_inliers, ..Default::default() };
+    let past = query_desc.as_ref().unwrap_or(&ref_desc);
+    // Each frame's own best matches (what a robot got back for it when it was new).
+    let past_top: Vec<Vec<u64>> = match v.sequence {
+        true => (0..nq)
+            .map(|i| match query_of(i, verify::sequence::VOTES) {
+                Some((q, opts)) => index.search(q, &opts, threads).iter().map(|m| m.frame_id).collect(),
+                None => Vec::new(),
             })
             .collect(),
+        false => Vec::new(),
     };
+    // Two traversals without sequence checks: every query has the same options, one batch.
+    let batched = match (&query_desc, v.sequence) {
+        (Some(qd), false) => Some(index.search_batch(qd, &LoopQuery { k: width, ..Default::default() }, threads)),
+        _ => None,
+    };
+    let mut samples: Vec<Sample> = Vec::new();
+    let mut confident: Vec<QueryResult> = Vec::new();
+    let mut results: Vec<QueryResult> = Vec::with_capacity(nq);
+    for i in 0..nq {
+        let Some((q, opts)) = query_of(i, width) else {
+            results.push(QueryResult { query: i, best: None });
+            confident.push(QueryResult { query: i, best: None });
+            continue;
+        };
+        let mut matches = match &batched {
+            Some(b) => b[i].clone(),
+            None => index.search(q, &opts, threads),
+        };
+        if v.sequence {
+            // Where the query's past says it is now, beside what looks most alike now.
+            let past_votes = &past_top[(i + 1).saturating_sub(v.sequence_length)..i];
+            let have: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
+            let ids: Vec<u64> = verify::sequence::voted(past_votes, |id, steps| index.advance(id, steps))
+                .into_iter()
+                .filter(|id| !have.contains(id))
+                .collect();
+            matches.extend(index.score_frames(q, &ids, &opts));
+        }
+        let ids: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
+        let places: Vec<Place> = ids.iter().map(|&id| Place { robot: 0, position: id as usize }).collect();
+        let seq = v.sequence.then(|| {
+            let l = v.sequence_length;
+            let history = past[(i + 1).saturating_sub(l)..=i].to_vec();
+            SequenceInputs {
+                stats: index.row_stats(&history, &opts),
+                history,
+                trails: ids.iter().map(|&id| index.trail(id, l)).collect(),
+                places: places.clone(),
+                min_margin: v.min_sequence_margin,
+                length: l,
+            }
+        });
+        let qf =
+            v.geometric.then(|| query_features.as_ref().unwrap_or(&ref_features)[i].as_ref().map_err(String::as_str));
+        let candidates = matches
+            .into_iter()
+            .map(|m| {
+                let f = ref_features.get(m.frame_id as usize).and_then(|f| f.clone().ok());
+                (m, f)
+            })
+            .collect();
+        let checks = Checks {
+            checked: if v.geometric { v.candidates } else { 0 },
+            camera: spec.intrinsics,
+            params: params.clone(),
+            seq,
+            places,
+            calibrator: spec.calibrator.clone(),
+        };
+        let ranked = verify::check(qf, candidates, &checks);
+        for (rank, c) in ranked.iter().enumerate() {
+            let truth = gt.is_match(i, c.m.frame_id as usize, spec.tolerance);
+            samples.push(Sample { evidence: c.evidence, truth, best: rank == 0 });
+        }
+        let first = ranked.first();
+        results.push(QueryResult { query: i, best: first.map(|c| (c.m.frame_id as usize, verify::rank_score(c))) });
+        let conf = first.and_then(|c| c.confidence.map(|p| (c.m.frame_id as usize, p)));
+        confident.push(QueryResult { query: i, best: conf });
+    }
+    if let Some(path) = spec.samples_out {
+        let mut out = String::new();
+        for s in &samples {
+            out.push_str(&serde_json::to_string(s)?);
+            out.push('\n');
+        }
+        std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))?;
+    }
+    let confidence = spec.calibrator.as_ref().map(|c| {
+        let k = c.clone();
+        let scored: Vec<(f32, bool)> = samples.iter().map(|s| (k.confidence(&s.evidence), s.truth)).collect();
+        evaluate_confidence(&confident, &gt, spec.tolerance, &scored, Some(c.loop_confidence))
+    });
     let report = evaluate(&results, &gt, spec.tolerance);
     let best = results.iter().map(|r| r.best).collect();
+    let best_confidence = confident.iter().map(|r| r.best.map(|b| b.1)).collect();
+    let best_correct = results.iter().map(|r| r.best.map(|(b, _)| gt.is_match(r.query, b, spec.tolerance))).collect();
     let out = EvalOutput {
         descriptor_id: engine.info().variant_id(setup.variant).to_string(),
         variant: setup.variant.name().to_string(),
@@ -329,7 +369,11 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         exclude: spec.exclude,
         range: spec.range.as_ref().map(|r| format!("{}..{}", r.start, r.end)),
         best,
+        best_confidence,
+        best_correct,
         report,
+        calibrator: spec.calibrator.as_ref().map(|c| c.descriptor_id.clone()),
+        confidence,
     };
     if let Some(dir) = spec.out {
         std::fs::create_dir_all(dir)?;
@@ -339,6 +383,10 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
             out.variant, out.report.recall_at_100_precision, out.report.average_precision
         );
         plots::pr_curve(&dir.join("pr_curve.png"), &[(out.variant.clone(), out.report.pr_curve.clone())], &title)?;
+        if let Some(c) = &out.confidence {
+            let title = format!("reliability: ECE {:.3}", c.expected_calibration_error);
+            plots::reliability(&dir.join("reliability.png"), &title, &[(out.variant.clone(), c.reliability.clone())])?;
+        }
         let qd = query_desc.as_ref().unwrap_or(&ref_desc);
         // The store's SIMD dot-product kernel, one query row at a time.
         let refs: Vec<f32> = ref_desc.iter().flatten().copied().collect();
@@ -389,16 +437,20 @@ fn extract_all(files: &[PathBuf], label: &str) -> Result<Vec<Result<Features, St
     Ok(out.into_iter().flatten().collect())
 }
 
-/// Loads the model, starts an engine and evaluates.
+/// Loads the model, starts an engine and evaluates, with the calibrator `calibration` has for
+/// the variant's descriptors.
 pub fn run(
     model: Model,
     spec: &EvalSpec,
     weights: &Path,
     variant: Variant,
     cache_dir: Option<&Path>,
+    calibration: &Calibration,
 ) -> Result<EvalOutput> {
     let cfg = EngineConfig { max_batch: 16, warm_up: false, ..Default::default() };
     let setup = EmbedSetup { weights, variant, cache_dir, max_batch: cfg.max_batch };
     let engine = Engine::start(model, cfg, ImageLimits::default())?;
-    evaluate_sequences(&engine, spec, &setup)
+    let mut spec = spec.clone();
+    spec.calibrator = calibration.resolve(engine.info().variant_id(variant))?.map(std::sync::Arc::new);
+    evaluate_sequences(&engine, &spec, &setup)
 }

@@ -29,7 +29,7 @@ pub fn frames_csv(frames: &[(u64, FrameHeader)]) -> String {
 pub fn loops_csv(loops: &[LoopRecord]) -> String {
     let mut out = String::from(
         "query_frame,match_frame,query_robot,match_robot,query_time,match_time,score,rank,checked,verified,inliers,\
-         verdict,verdict_tx,verdict_ty,verdict_tz,verdict_qx,verdict_qy,verdict_qz,verdict_qw\n",
+         verdict,verdict_tx,verdict_ty,verdict_tz,verdict_qx,verdict_qy,verdict_qz,verdict_qw,confidence\n",
     );
     for l in loops {
         let verdict = match &l.verdict {
@@ -41,9 +41,11 @@ pub fn loops_csv(loops: &[LoopRecord]) -> String {
             || ",,,,,,".to_string(),
             |p| format!("{},{},{},{},{},{},{}", p.tx, p.ty, p.tz, p.qx, p.qy, p.qz, p.qw),
         );
+        // Empty without a calibrator for the session's descriptors.
+        let confidence = l.confidence.map_or_else(String::new, |c| c.to_string());
         let _ = writeln!(
             out,
-            "{},{},{},{},{:.9},{:.9},{},{},{},{},{},{verdict},{pose}",
+            "{},{},{},{},{:.9},{:.9},{},{},{},{},{},{verdict},{pose},{confidence}",
             l.query_frame,
             l.match_frame,
             field(&l.query_robot),

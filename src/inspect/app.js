@@ -10,7 +10,7 @@
   const sessionId = decodeURIComponent(parts[parts.length - 2]);
   const base = '/v1/sessions/' + encodeURIComponent(sessionId);
   const state = { key: '', frames: new Map(), loops: [], selected: null, thumbs: new Map(),
-                  edges: new Map(), rows: new Map(), lo: 0, hi: 1, generation: 0 };
+                  edges: new Map(), rows: new Map(), lo: 0, hi: 1, generation: 0, loopConfidence: null };
   const pairKey = (l) => l.query_frame + '-' + l.match_frame;
 
   function status(text, error) {
@@ -132,6 +132,15 @@
 
   function verdictText(l) { return l.verdict ? (l.verdict.accepted ? 'accepted' : 'rejected') : ''; }
 
+  function confidenceText(l) {
+    return typeof l.confidence === 'number' ? l.confidence.toFixed(3) : '—';
+  }
+
+  // A loop by the server's calibrated confidence: at least its loop confidence (/v1/info).
+  function isLoop(l) {
+    return state.loopConfidence === null || (typeof l.confidence === 'number' && l.confidence >= state.loopConfidence);
+  }
+
   function verifiedText(l) {
     if (!l.checked) return '—';
     return (l.verified ? '✓ ' : '✗ ') + l.inliers + ' inliers';
@@ -162,9 +171,10 @@
       row.dataset.q = l.query_frame;
       row.dataset.m = l.match_frame;
       row.dataset.score = l.score;
+      row.dataset.loop = isLoop(l);
       const cells = [frameText(l.query_robot, l.query_frame, l.query_time),
                      frameText(l.match_robot, l.match_frame, l.match_time),
-                     l.score.toFixed(3), verifiedText(l), ''];
+                     l.score.toFixed(3), verifiedText(l), '', confidenceText(l)];
       for (const c of cells) row.insertCell().textContent = c;
       row.addEventListener('click', () => select(l));
       state.rows.set(pairKey(l), row);
@@ -174,10 +184,11 @@
 
   function applyThreshold() {
     const t = Number($('threshold').value);
+    const onlyLoops = $('only-loops').checked;
     $('threshold-value').textContent = t.toFixed(2);
     let shown = 0;
     for (const l of state.loops) {
-      const hide = l.score < t;
+      const hide = l.score < t || (onlyLoops && !isLoop(l));
       if (!hide) shown++;
       const row = state.rows.get(pairKey(l)), edge = state.edges.get(pairKey(l));
       if (row) row.classList.toggle('hidden', hide);
@@ -238,6 +249,7 @@
       const dd = document.createElement('dd'); dd.textContent = v; dl.appendChild(dd);
     };
     add('score', l.score.toFixed(4) + ' (rank ' + l.rank + ')');
+    add('confidence', confidenceText(l) + (isLoop(l) ? ' (a loop)' : ' (below the loop confidence)'));
     add('query', frameText(l.query_robot, l.query_frame, l.query_time));
     add('match', frameText(l.match_robot, l.match_frame, l.match_time));
     add('Δt', (l.query_time - l.match_time).toFixed(2) + ' s');
@@ -328,12 +340,17 @@
     status('Loading ' + sessionId + ' …');
     try {
       const info = await (await api(base)).json();
+      const server = await (await api('/v1/info')).json();
       const frames = await allPages(base + '/frames?limit=10000', 'frames');
       const loops = await allPages(base + '/loops?limit=1000', 'loops');
       if (generation !== state.generation) return;
       $('session-name').textContent = info.name ? info.name + ' (' + info.id + ')' : info.id;
       state.frames = new Map(frames.map((f) => [f.frame_id, f]));
       state.loops = loops;
+      // Without a calibrated confidence every kept candidate is shown.
+      state.loopConfidence = typeof server.loop_confidence === 'number' ? server.loop_confidence : null;
+      $('only-loops').disabled = state.loopConfidence === null;
+      $('loop-confidence').textContent = state.loopConfidence === null ? 'none (no calibrator)' : state.loopConfidence.toFixed(2);
       [state.lo, state.hi] = state.loops.length ? range(state.loops.map((l) => l.score)) : [0, 1];
       const slider = $('threshold');
       slider.min = (Math.floor(state.lo * 100) / 100).toFixed(2);
@@ -362,6 +379,7 @@
       load();
     });
     $('threshold').addEventListener('input', applyThreshold);
+    $('only-loops').addEventListener('change', applyThreshold);
     $('accept').addEventListener('click', () => verdict(true));
     $('reject').addEventListener('click', () => verdict(false));
     const kept = sessionStorage.getItem('loopd-key');

@@ -51,6 +51,26 @@ const PARALLEL_MIN_VALUES: usize = 8 << 20;
 /// Rows searched per chunk: big enough to amortise, small enough for threads to share work.
 const CHUNK_ROWS: usize = 4096;
 
+/// Frames of the map (evenly spaced) a frame's similarity statistics are taken over
+/// ([`SessionIndex::row_stats`]).
+pub const ROW_SAMPLE: usize = 256;
+
+/// Mean and standard deviation (at least 1e-6) of `values`.
+pub fn mean_std(values: impl Iterator<Item = f32>) -> (f32, f32) {
+    let (mut n, mut sum, mut sq) = (0usize, 0f64, 0f64);
+    for v in values {
+        n += 1;
+        sum += v as f64;
+        sq += (v as f64) * (v as f64);
+    }
+    if n == 0 {
+        return (0.0, 1.0);
+    }
+    let mean = sum / n as f64;
+    let var = (sq / n as f64 - mean * mean).max(0.0);
+    (mean as f32, (var.sqrt() as f32).max(1e-6))
+}
+
 impl SessionIndex {
     pub fn new(dim: usize, storage: Storage) -> Self {
         Self {
@@ -217,6 +237,17 @@ impl SessionIndex {
         let Some(&r) = self.robot_ids.get(robot_id) else { return Vec::new() };
         let ids = &self.by_robot[r as usize];
         ids[ids.len().saturating_sub(n)..].iter().filter_map(|&id| self.descriptor(id)).collect()
+    }
+
+    /// Each descriptor's (mean, std) of its similarities to the frames `opts` lets a query
+    /// match: to [`ROW_SAMPLE`] of them, evenly spaced in the index (all of them when fewer).
+    /// Sequence verification z-scores a history frame's similarities with them.
+    pub fn row_stats(&self, descriptors: &[Vec<f32>], opts: &LoopQuery) -> Vec<(f32, f32)> {
+        let filter = Filter::new(self, opts);
+        let allowed: Vec<usize> = (0..self.frames.len()).filter(|&row| filter.allows(row)).collect();
+        let step = allowed.len().div_ceil(ROW_SAMPLE).max(1);
+        let rows: Vec<usize> = allowed.into_iter().step_by(step).collect();
+        descriptors.iter().map(|d| mean_std(rows.iter().map(|&row| self.host_dot(d, row)))).collect()
     }
 
     /// The stored descriptor of a frame, as f32.

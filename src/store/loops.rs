@@ -47,6 +47,9 @@ pub struct LoopRecord {
     pub score: f32,
     /// Place among the candidates answered (0: first).
     pub rank: u32,
+    /// Its calibrated confidence when it was answered (none without a calibrator).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub confidence: Option<f32>,
     /// Geometric verification ran on this candidate.
     pub checked: bool,
     pub verified: bool,
@@ -72,6 +75,8 @@ pub struct LoopFilter {
     /// Loops with this robot on either side.
     pub robot: Option<String>,
     pub min_score: Option<f32>,
+    /// Loops answered with at least this confidence (those without one are left out).
+    pub min_confidence: Option<f32>,
     pub verified: Option<bool>,
     /// The query frame's time in [time_from, time_to].
     pub time_from: Option<f64>,
@@ -85,6 +90,7 @@ impl LoopFilter {
     fn keeps(&self, l: &LoopRecord) -> bool {
         self.robot.as_ref().is_none_or(|r| *r == l.query_robot || *r == l.match_robot)
             && self.min_score.is_none_or(|s| l.score >= s)
+            && self.min_confidence.is_none_or(|c| l.confidence.is_some_and(|x| x >= c))
             && self.verified.is_none_or(|v| v == l.verified)
             && self.time_from.is_none_or(|t| l.query_time >= t)
             && self.time_to.is_none_or(|t| l.query_time <= t)

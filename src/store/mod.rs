@@ -622,6 +622,18 @@ impl Session {
         d.ok_or_else(|| StoreError::FrameNotFound(self.meta.id.clone(), frame_id))
     }
 
+    /// Each descriptor's similarity statistics over the frames a query may match
+    /// (`SessionIndex::row_stats`).
+    pub fn row_stats(&self, descriptors: &[Vec<f32>], q: &query::LoopQuery) -> Vec<(f32, f32)> {
+        self.index.read().row_stats(descriptors, q)
+    }
+
+    /// Each frame's place: its robot and its position on that robot's trajectory.
+    pub fn places(&self, frames: &[u64]) -> Vec<(u32, usize)> {
+        let index = self.index.read();
+        frames.iter().map(|&id| index.place(id).unwrap_or((u32::MAX, 0))).collect()
+    }
+
     /// What sequence verification needs of the map: for each candidate, its place (robot,
     /// position in its trajectory) and the descriptors of its last `n` frames up to it; and the
     /// `history` robot's newest `n` stored frames (oldest first).

@@ -22,6 +22,9 @@ pub struct LoopQuery {
     pub k: usize,
     /// Matches scoring below this cosine similarity are not returned.
     pub min_score: f32,
+    /// Candidates whose calibrated confidence is below this are not returned (0: every one;
+    /// above 0 it needs a calibrator for the session's descriptors).
+    pub min_confidence: f32,
     /// Robot asking; the exclusion window and the scope refer to it.
     pub robot_id: Option<String>,
     /// Skip the querying robot's own last N frames (neighbours always look alike).
@@ -75,8 +78,10 @@ impl Default for VerifyOptions {
             candidates: 5,
             min_inliers: 30,
             sequence: false,
-            sequence_length: 10,
-            min_sequence_margin: 0.05,
+            // Chosen on Nordland's training places (docs/verification.md): 40 frames, a margin of
+            // 1 z unit over the best candidate elsewhere.
+            sequence_length: 40,
+            min_sequence_margin: 1.0,
         }
     }
 }
@@ -86,6 +91,7 @@ impl Default for LoopQuery {
         Self {
             k: 5,
             min_score: -1.0,
+            min_confidence: 0.0,
             robot_id: None,
             exclude_last_frames: 0,
             exclude_last_seconds: 0.0,
@@ -107,6 +113,9 @@ impl LoopQuery {
         }
         if !self.min_score.is_finite() {
             return Err("min_score must be a finite number".into());
+        }
+        if !(0.0..=1.0).contains(&self.min_confidence) {
+            return Err(format!("min_confidence = {} is out of range 0..=1", self.min_confidence));
         }
         if !self.exclude_last_seconds.is_finite() || self.exclude_last_seconds < 0.0 {
             return Err("exclude_last_seconds must be a finite number >= 0".into());

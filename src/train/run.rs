@@ -116,10 +116,18 @@ pub struct Outcome {
     pub final_validation: Vec<ValScore>,
 }
 
-/// The model-selection score: mean recall@1 over the validation sets (AP breaks ties).
+/// The model-selection score: mean recall@1 over the validation sets (AP breaks ties), among
+/// the epochs that pass [`keeps_r_at_100p`].
 fn selection_score(v: &[ValScore]) -> f64 {
     let n = v.len().max(1) as f64;
     v.iter().map(|s| s.recall_at_1 + 1e-3 * s.average_precision).sum::<f64>() / n
+}
+
+/// The shipping rule's first part: no validation set loses recall at 100% precision against the
+/// heads training started from (epoch 0). A better ranking within queries must not cost the
+/// scores' meaning across queries (docs/training.md).
+fn keeps_r_at_100p(v: &[ValScore], start: &[ValScore]) -> bool {
+    v.iter().zip(start).all(|(a, b)| a.recall_at_100_precision + 1e-9 >= b.recall_at_100_precision)
 }
 
 fn is_trained(name: &str, layer4: bool) -> bool {
@@ -181,6 +189,8 @@ pub fn validate(spec: &TrainSpec, heads: Option<&Path>) -> Result<Vec<ValScore>>
                 out: None,
                 filter: v.filter.as_deref(),
                 range: v.range.clone(),
+                calibrator: None,
+                samples_out: None,
             };
             let r =
                 evaluate_sequences(&engine, &es, &setup).with_context(|| format!("validation set {}", v.name))?.report;
@@ -434,7 +444,11 @@ pub fn train(spec: &TrainSpec) -> Result<Outcome> {
         log_validation(epoch + 1, &v);
         let score = selection_score(&v);
         st.epochs_done = epoch + 1;
-        if score > st.best_score {
+        let eligible = st.validation.first().is_none_or(|start| keeps_r_at_100p(&v, start));
+        if !eligible {
+            tracing::warn!(epoch = epoch + 1, "a validation set lost R@100P against epoch 0: not selectable");
+        }
+        if eligible && score > st.best_score {
             st.best_score = score;
             st.best_epoch = epoch + 1;
             let extra = [

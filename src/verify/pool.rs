@@ -1,8 +1,7 @@
 //! Feature extraction and candidate checks on a bounded set of blocking threads, never on the
 //! request executor nor on the model thread.
 use super::features::{from_image_bytes, FeatureParams, Features};
-use super::geometric::{Intrinsics, VerifyParams};
-use super::{LoopMatch, SequenceInputs};
+use super::{Checks, LoopMatch};
 use crate::model::preprocess::ImageLimits;
 use crate::store::query::Match;
 use std::sync::Arc;
@@ -68,14 +67,11 @@ impl Verifier {
         &self,
         query: Option<Result<Arc<Features>, String>>,
         candidates: Vec<(Match, Option<Features>)>,
-        checked: usize,
-        camera: Option<Intrinsics>,
-        params: VerifyParams,
-        seq: Option<SequenceInputs>,
+        checks: Checks,
     ) -> Result<Vec<LoopMatch>, String> {
         self.run(move || {
             let query = query.as_ref().map(|q| q.as_deref().map_err(String::as_str));
-            super::check(query, candidates, checked, camera.as_ref(), &params, seq.as_ref())
+            super::check(query, candidates, &checks)
         })
         .await
     }

@@ -1,8 +1,11 @@
 //! Sequence (temporal) verification: a candidate is scored by the frames that led up to it. The
 //! querying robot's last L frames (the query last) are compared with the L frames that led up to
 //! the candidate in its own robot's trajectory, pair by pair along the diagonal (causal: only
-//! the past), and the candidate must stand out from candidates elsewhere on the map. Cost:
-//! O(K·L) dot products per query, never a scan of the map per history frame.
+//! the past), each similarity z-scored by its history frame's similarities to the map (a frame
+//! that looks like everything says little), and the candidate must stand out from candidates
+//! elsewhere on the map. Cost: O(K·L) dot products per query and O(L·256) for the history
+//! frames' statistics (`store::index::ROW_SAMPLE` frames of the map), never a scan of the map per history
+//! frame.
 use serde::Serialize;
 
 /// Best matches a frame keeps as its votes for later sequence checks.
@@ -15,7 +18,8 @@ pub const POOL: usize = 20;
 /// The outcome for one candidate.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct SequenceCheck {
-    /// Mean cosine along the diagonal.
+    /// Mean z-scored similarity along the diagonal (each history frame's similarity to the
+    /// candidate's aligned frame, in units of its own similarities to the map).
     pub score: f32,
     /// `score` minus the best score of the candidates more than `window` frames away in the
     /// trajectory (0 when there is none to compare with).
@@ -57,16 +61,18 @@ pub struct Place {
 }
 
 /// Checks every candidate: `trails[i]` is candidate i's trajectory up to it (oldest first),
-/// `places[i]` where it is. Candidates within `window` positions of each other on one robot's
-/// trajectory are one place and do not compete.
+/// `places[i]` where it is, `stats[j]` history frame j's (mean, std) of similarities to the map.
+/// Candidates within `window` positions of each other on one robot's trajectory are one place
+/// and do not compete.
 pub fn check(
     history: &[Vec<f32>],
+    stats: &[(f32, f32)],
     trails: &[Vec<Vec<f32>>],
     places: &[Place],
     window: usize,
     min_margin: f32,
 ) -> Vec<Option<SequenceCheck>> {
-    let scored = normalized_scores(history, trails);
+    let scored = normalized_scores(history, stats, trails);
     scored
         .iter()
         .enumerate()
@@ -87,35 +93,26 @@ pub fn check(
         .collect()
 }
 
-/// Each candidate's mean along the diagonal of similarities normalised per history frame: a
-/// history frame's similarities to the candidates' aligned frames are z-scored across the
-/// candidates (a frame that looks like everything says little), then averaged along each
-/// candidate's diagonal. With fewer than three candidates at a step the raw cosine is used.
-fn normalized_scores(history: &[Vec<f32>], trails: &[Vec<Vec<f32>>]) -> Vec<Option<(f32, usize)>> {
-    let steps = history.len();
-    // sims[c][j]: candidate c's frame j steps back against the history frame j steps back.
-    let sims: Vec<Vec<Option<f32>>> = trails
+/// Each candidate's mean along the diagonal of z-scored similarities: history frame j's
+/// similarity to the candidate's frame j steps back, minus that history frame's mean similarity
+/// to the map, over its standard deviation (`stats[j]`).
+fn normalized_scores(
+    history: &[Vec<f32>],
+    stats: &[(f32, f32)],
+    trails: &[Vec<Vec<f32>>],
+) -> Vec<Option<(f32, usize)>> {
+    let steps = history.len().min(stats.len());
+    trails
         .iter()
         .map(|t| {
-            (0..steps)
-                .map(|j| Some(dot(history.get(steps.checked_sub(1 + j)?)?, t.get(t.len().checked_sub(1 + j)?)?)))
-                .collect()
-        })
-        .collect();
-    let stats: Vec<(f32, f32)> = (0..steps)
-        .map(|j| {
-            let v: Vec<f32> = sims.iter().filter_map(|s| s[j]).collect();
-            if v.len() < 3 {
-                return (0.0, 1.0);
-            }
-            let mean = v.iter().sum::<f32>() / v.len() as f32;
-            let var = v.iter().map(|x| (x - mean) * (x - mean)).sum::<f32>() / v.len() as f32;
-            (mean, var.sqrt().max(1e-6))
-        })
-        .collect();
-    sims.iter()
-        .map(|s| {
-            let z: Vec<f32> = s.iter().zip(&stats).filter_map(|(x, (m, sd))| x.map(|x| (x - m) / sd)).collect();
+            let z: Vec<f32> = (0..steps)
+                .map_while(|j| {
+                    let h = steps - 1 - j;
+                    let c = t.get(t.len().checked_sub(1 + j)?)?;
+                    let (mean, sd) = stats[h];
+                    Some((dot(&history[h], c) - mean) / sd)
+                })
+                .collect();
             (!z.is_empty()).then(|| (z.iter().sum::<f32>() / z.len() as f32, z.len()))
         })
         .collect()
@@ -140,17 +137,20 @@ mod tests {
         // Candidate 0 has the same past; candidate 1 looks the same now but came from elsewhere.
         let trails = vec![vec![a.clone(), b.clone(), c.clone()], vec![b.clone(), a.clone(), c.clone()]];
         let places = [Place { robot: 0, position: 10 }, Place { robot: 0, position: 50 }];
-        let out = check(&history, &trails, &places, 5, 0.2);
+        // Each history frame's similarities to the map: mean 0.5, std 0.25.
+        let stats = [(0.5, 0.25); 3];
+        let out = check(&history, &stats, &trails, &places, 5, 0.2);
         let (good, bad) = (out[0].clone().unwrap(), out[1].clone().unwrap());
-        assert!((good.score - 1.0).abs() < 1e-6 && (bad.score - 1.0 / 3.0).abs() < 1e-6);
-        assert!((good.margin - 2.0 / 3.0).abs() < 1e-6 && good.verified);
+        // z = (1 - 0.5) / 0.25 = 2 on every step for the good one; (0, 0, 1) for the bad one.
+        assert!((good.score - 2.0).abs() < 1e-6 && (bad.score - (-2.0 - 2.0 + 2.0) / 3.0).abs() < 1e-6);
+        assert!((good.margin - (good.score - bad.score)).abs() < 1e-6 && good.verified);
         assert!(!bad.verified && bad.margin < 0.0);
         // Neighbours on the same trajectory do not compete: no rival, no verdict.
         let near = [Place { robot: 0, position: 10 }, Place { robot: 0, position: 12 }];
-        assert!(check(&history, &trails, &near, 5, 0.2).iter().all(|c| !c.as_ref().unwrap().verified));
+        assert!(check(&history, &stats, &trails, &near, 5, 0.2).iter().all(|c| !c.as_ref().unwrap().verified));
         // A young trajectory compares what it has.
-        let short = check(&history[2..], &trails, &places, 5, 0.2);
+        let short = check(&history[2..], &stats[2..], &trails, &places, 5, 0.2);
         assert_eq!(short[0].as_ref().unwrap().length, 1);
-        assert!(check(&[], &trails, &places, 5, 0.2).iter().all(Option::is_none));
+        assert!(check(&[], &[], &trails, &places, 5, 0.2).iter().all(Option::is_none));
     }
 }

@@ -10,6 +10,7 @@ target/inspector/ for a person to look at."""
 from __future__ import annotations
 
 import io
+import json
 import os
 import tarfile
 import urllib.request
@@ -108,6 +109,13 @@ def export(server, key, session, tmp):
     return (tmp / "loops.csv").read_text().splitlines(), (tmp / "graph.g2o").read_text().splitlines()
 
 
+def info(server, key):
+    request = urllib.request.Request(f"https://127.0.0.1:{server.http_port}/v1/info",
+                                     headers={"Authorization": f"Bearer {key}"})
+    with urllib.request.urlopen(request, context=server.ssl) as r:
+        return json.load(r)
+
+
 def test_desk_loops_thumbnails_inliers_and_slider(server, key, browser):
     with Client(server.grpc, key=key, ca=server.ca) as c:
         c.create_session("desk", thumbnails=True)
@@ -128,6 +136,16 @@ def test_desk_loops_thumbnails_inliers_and_slider(server, key, browser):
     assert thumbnail_widths(browser) == [160, 160], "both thumbnails load (160 px wide)"
     assert lines == min(100, kept[(9, 0)].inliers) > 0, "the inlier matches are drawn"
     screenshot(browser, "desk")
+
+    # It opens showing only the loops: candidates whose confidence reaches the server's loop
+    # confidence (/v1/info); the switch shows every kept candidate.
+    loop_confidence = info(server, key)["loop_confidence"]
+    loops = {p for p, l in kept.items() if l.HasField("confidence") and l.confidence >= loop_confidence}
+    assert (9, 0) in loops and len(loops) < len(kept), (loops, loop_confidence)
+    assert shown_loops(browser, visible_only=True) == loops
+    assert len(browser.find_elements(By.CSS_SELECTOR, "#map .loop.hidden")) == len(kept) - len(loops)
+    browser.find_element(By.ID, "only-loops").click()
+    assert shown_loops(browser, visible_only=True) == set(kept)
 
     # The slider hides the loops scoring below it, in the table and on the map.
     threshold = kept[(9, 0)].score + 1e-3
@@ -156,7 +174,10 @@ def test_corridor_bag_shows_the_known_revisits(server, key, browser, tmp_path):
     assert f"222 frames of 1 robot(s), {len(kept)} kept loops" in status, status
     assert shown_loops(browser) == kept, "the page lists exactly the kept loops, the known revisits among them"
     q, m = min(known)
-    assert select(browser, q, m) == 0, "not verified: no inlier matches to draw"
+    with Client(server.grpc, key=key, ca=server.ca) as c:
+        first = next(l for l in c.loops("corridor") if (l.query_frame, l.match_frame) == (q, m))
+    drawn = min(100, first.inliers) if first.verified else 0
+    assert select(browser, q, m) == drawn, "inlier matches drawn for a verified loop only"
     assert thumbnail_widths(browser) == [160, 160], "both thumbnails load"
     screenshot(browser, "corridor")
     print(f"corridor: {len(kept)} kept loops, {len(known)} of them revisits in gt.csv")

@@ -1,3 +1,4 @@
+mod confidence;
 mod inspect;
 mod loops;
 mod server;

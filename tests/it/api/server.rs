@@ -332,7 +332,9 @@ async fn offline_sequence_job_finds_the_desk_loop() {
     let url = |p: &str| format!("{}{p}", s.http);
     http.post(url("/v1/sessions")).json(&serde_json::json!({ "id": "desk-seq" })).send().await.unwrap();
     // Sent shuffled; order=name puts them back as 1, 2, ..., 10.
-    let mut form = reqwest::multipart::Form::new().text("order", "name").text("min_score", "0.8");
+    // Every first candidate scoring 0.8 (no confidence floor): the plain backbone's descriptors.
+    let mut form =
+        reqwest::multipart::Form::new().text("order", "name").text("min_score", "0.8").text("min_confidence", "0");
     for i in [3, 10, 1, 7, 2, 9, 4, 6, 8, 5] {
         let part = reqwest::multipart::Part::bytes(jpeg(&format!("slambook2-ch11/{i}.png")).to_vec())
             .file_name(format!("{i}.png"));

@@ -61,6 +61,14 @@ pub fn loopd_bin() -> std::process::Command {
     c
 }
 
+/// The model `loopd serve` runs by default: the ImageNet backbone with the shipped heads and
+/// whitening (`models/heads.safetensors`).
+pub fn shipped_model() -> Model {
+    let mut m = imagenet_model();
+    m.load_heads(&root().join(loopd::cli::DEFAULT_HEADS)).expect("loading the shipped heads");
+    m
+}
+
 /// The ImageNet model at another input size (another descriptor space).
 pub fn imagenet_model_at(width: u32, height: u32) -> Model {
     let mut cfg = ModelConfig::default();

@@ -190,14 +190,16 @@ class Client:
 
     def loops(self, session: str, *, robot: str = "", min_score: Optional[float] = None,
               verified: Optional[bool] = None, time_from: Optional[float] = None,
-              time_to: Optional[float] = None, page: int = 500) -> Iterator[pb.Loop]:
+              time_to: Optional[float] = None, min_confidence: Optional[float] = None,
+              page: int = 500) -> Iterator[pb.Loop]:
         """Every kept loop candidate of a session matching the filters, in frame order (pages
-        fetched as needed)."""
+        fetched as needed); `min_confidence` keeps those answered with at least that calibrated
+        confidence (each Loop's `confidence`; Match has it too)."""
         after = ""
         while True:
             request = pb.ListLoopsRequest(session_id=session, robot_id=robot, min_score=min_score,
                                           verified=verified, time_from=time_from, time_to=time_to,
-                                          after=after, limit=page)
+                                          min_confidence=min_confidence, after=after, limit=page)
             response = self._unary(self._stub.ListLoops, request)
             yield from response.loops
             if not response.next:
