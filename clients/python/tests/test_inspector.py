@@ -88,6 +88,14 @@ def select(driver, q, m):
     return int(canvas.get_attribute("data-lines"))
 
 
+def show_all(driver):
+    """Turns the page's "only loops" switch off: every kept candidate is listed and can be chosen."""
+    box = driver.find_element(By.ID, "only-loops")
+    if box.is_selected():
+        box.click()
+    assert not box.is_selected()
+
+
 def thumbnail_widths(driver):
     return [driver.execute_script("return arguments[0].naturalWidth", driver.find_element(By.ID, i))
             for i in ("thumb-query", "thumb-match")]
@@ -164,7 +172,8 @@ def test_corridor_bag_shows_the_known_revisits(server, key, browser, tmp_path):
     job = ingest(server, bag, "--session", "corridor", "--thumbnails")
     assert (job["state"], job["done"], job["errors"]) == ("done", 222, []), job
     with Client(server.grpc, key=key, ca=server.ca) as c:
-        kept = {(l.query_frame, l.match_frame) for l in c.loops("corridor")}
+        records = {(l.query_frame, l.match_frame): l for l in c.loops("corridor")}
+    kept = set(records)
     n = len(CORRIDOR) // 2
     truth = corridor_truth()
     known = {(q, m) for q, m in kept if q >= n and m < n and m in truth.get(q - n, set())}
@@ -173,14 +182,19 @@ def test_corridor_bag_shows_the_known_revisits(server, key, browser, tmp_path):
     status = open_inspector(browser, server, key, "corridor")
     assert f"222 frames of 1 robot(s), {len(kept)} kept loops" in status, status
     assert shown_loops(browser) == kept, "the page lists exactly the kept loops, the known revisits among them"
+    # It opens on what the server's loop confidence accepts of the job's candidates; then all.
+    loop_confidence = info(server, key)["loop_confidence"]
+    loops = {p for p, l in records.items() if l.HasField("confidence") and l.confidence >= loop_confidence}
+    assert shown_loops(browser, visible_only=True) == loops
+    show_all(browser)
+    assert shown_loops(browser, visible_only=True) == kept
     q, m = min(known)
-    with Client(server.grpc, key=key, ca=server.ca) as c:
-        first = next(l for l in c.loops("corridor") if (l.query_frame, l.match_frame) == (q, m))
+    first = records[(q, m)]
     drawn = min(100, first.inliers) if first.verified else 0
     assert select(browser, q, m) == drawn, "inlier matches drawn for a verified loop only"
     assert thumbnail_widths(browser) == [160, 160], "both thumbnails load"
     screenshot(browser, "corridor")
-    print(f"corridor: {len(kept)} kept loops, {len(known)} of them revisits in gt.csv")
+    print(f"corridor: {len(kept)} kept candidates, {len(loops)} at the loop confidence, {len(known)} revisits in gt.csv")
 
 
 def test_a_loop_rejected_on_the_page_leaves_the_graph(server, key, browser, tmp_path):
@@ -207,6 +221,7 @@ def test_a_loop_rejected_on_the_page_leaves_the_graph(server, key, browser, tmp_
     trajectory = browser.find_element(By.CSS_SELECTOR, "#map .trajectory")
     assert trajectory.get_attribute("data-points") == str(len(true)), "the trajectory from the poses"
     assert len(browser.find_elements(By.CSS_SELECTOR, "#map .loop")) == len(loops)
+    show_all(browser)
     select(browser, q, m)
     browser.find_element(By.ID, "reject").click()
     WebDriverWait(browser, 30).until(lambda d: "saved" in d.find_element(By.ID, "verdict-status").text)
