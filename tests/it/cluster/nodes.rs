@@ -609,7 +609,9 @@ async fn desk_job(http: &reqwest::Client, node: &RunningServer, session: &str) -
     let url = format!("http://{}/v1/sessions", node.http_addr);
     let r = http.post(&url).json(&serde_json::json!({ "id": session })).send().await.unwrap();
     assert!(r.status() == 201 || r.status() == 409, "{}", r.status());
-    let mut form = reqwest::multipart::Form::new().text("order", "name").text("min_score", "0.8");
+    // Every first candidate scoring 0.8 (no confidence floor): the plain backbone's descriptors.
+    let mut form =
+        reqwest::multipart::Form::new().text("order", "name").text("min_score", "0.8").text("min_confidence", "0");
     for i in 1..=10 {
         let image = std::fs::read(data(&format!("slambook2-ch11/{i}.png"))).unwrap();
         form = form.part("image", reqwest::multipart::Part::bytes(image).file_name(format!("{i}.png")));
