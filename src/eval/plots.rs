@@ -10,27 +10,76 @@ fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
 
 /// Precision against recall, one point per threshold, with R@100P marked in the title.
 pub fn pr_curve(path: &Path, curves: &[(String, Vec<PrPoint>)], title: &str) -> Result<()> {
-    let root = BitMapBackend::new(path, (800, 600)).into_drawing_area();
+    let series: Vec<(String, Vec<(f64, f64)>)> = curves
+        .iter()
+        .map(|(name, pts)| {
+            let mut line = vec![(0.0, 1.0)];
+            line.extend(pts.iter().map(|p| (p.recall, p.precision)));
+            (name.clone(), line)
+        })
+        .collect();
+    let axes = Axes { size: (800, 600), x: 0.0..1.0, y: 0.0..1.02, desc: ("recall", "precision"), y_label: 55 };
+    line_chart(path, title, axes, &series, Extras::default())
+}
+
+/// The frame of a line chart.
+struct Axes<'a> {
+    size: (u32, u32),
+    x: std::ops::Range<f64>,
+    y: std::ops::Range<f64>,
+    desc: (&'a str, &'a str),
+    y_label: u32,
+}
+
+/// What one chart adds to its lines.
+#[derive(Default)]
+struct Extras {
+    /// The y = x line, drawn under the series.
+    diagonal: bool,
+    /// A dot on every point.
+    markers: bool,
+    /// The legend in the upper left corner (else the upper right).
+    legend_left: bool,
+}
+
+/// Named series of (x, y) points as lines with a legend: every chart of this module but the
+/// similarity matrix.
+fn line_chart(
+    path: &Path,
+    title: &str,
+    axes: Axes,
+    series: &[(String, Vec<(f64, f64)>)],
+    extras: Extras,
+) -> Result<()> {
+    let root = BitMapBackend::new(path, axes.size).into_drawing_area();
     root.fill(&WHITE).map_err(err)?;
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 22))
         .margin(15)
         .x_label_area_size(45)
-        .y_label_area_size(55)
-        .build_cartesian_2d(0f64..1.0, 0f64..1.02)
+        .y_label_area_size(axes.y_label)
+        .build_cartesian_2d(axes.x, axes.y)
         .map_err(err)?;
-    chart.configure_mesh().x_desc("recall").y_desc("precision").draw().map_err(err)?;
-    for (i, (name, pts)) in curves.iter().enumerate() {
+    chart.configure_mesh().x_desc(axes.desc.0).y_desc(axes.desc.1).draw().map_err(err)?;
+    if extras.diagonal {
+        chart.draw_series(LineSeries::new(vec![(0.0, 0.0), (1.0, 1.0)], BLACK.mix(0.4))).map_err(err)?;
+    }
+    for (i, (name, pts)) in series.iter().enumerate() {
         let color = Palette99::pick(i).to_rgba();
-        let mut line: Vec<(f64, f64)> = vec![(0.0, 1.0)];
-        line.extend(pts.iter().map(|p| (p.recall, p.precision)));
         chart
-            .draw_series(LineSeries::new(line, color.stroke_width(2)))
+            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
             .map_err(err)?
             .label(name.clone())
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+        if extras.markers {
+            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled()))).map_err(err)?;
+        }
     }
-    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(err)?;
+    let mut labels = chart.configure_series_labels();
+    if extras.legend_left {
+        labels.position(SeriesLabelPosition::UpperLeft);
+    }
+    labels.background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(err)?;
     root.present().map_err(err)?;
     Ok(())
 }
@@ -72,62 +121,26 @@ pub fn lines(path: &Path, title: &str, axes: (&str, &str), series: &[(String, Ve
     let (x1, y0, y1) =
         pts.fold((1f64, f64::INFINITY, f64::NEG_INFINITY), |(x1, y0, y1), &(x, y)| (x1.max(x), y0.min(y), y1.max(y)));
     let (y0, y1) = if y0.is_finite() { (y0.min(0.0), y1.max(y0 + 1e-3) * 1.05) } else { (0.0, 1.0) };
-    let root = BitMapBackend::new(path, (800, 500)).into_drawing_area();
-    root.fill(&WHITE).map_err(err)?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 22))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0f64..x1, y0..y1)
-        .map_err(err)?;
-    chart.configure_mesh().x_desc(axes.0).y_desc(axes.1).draw().map_err(err)?;
-    for (i, (name, p)) in series.iter().enumerate() {
-        let color = Palette99::pick(i).to_rgba();
-        chart
-            .draw_series(LineSeries::new(p.clone(), color.stroke_width(2)))
-            .map_err(err)?
-            .label(name.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
-    }
-    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(err)?;
-    root.present().map_err(err)?;
-    Ok(())
+    let axes = Axes { size: (800, 500), x: 0.0..x1, y: y0..y1, desc: axes, y_label: 60 };
+    line_chart(path, title, axes, series, Extras::default())
 }
 
 /// Reliability diagrams, one series per set: each bin's mean confidence against the share of its
 /// candidates that were true loops (the diagonal is perfect calibration); the bins' counts in
 /// the legend's name are the caller's.
 pub fn reliability(path: &Path, title: &str, series: &[(String, Vec<super::metrics::ReliabilityBin>)]) -> Result<()> {
-    let root = BitMapBackend::new(path, (800, 640)).into_drawing_area();
-    root.fill(&WHITE).map_err(err)?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 22))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(55)
-        .build_cartesian_2d(0f64..1.0, 0f64..1.0)
-        .map_err(err)?;
-    chart.configure_mesh().x_desc("confidence (bin mean)").y_desc("share of true loops").draw().map_err(err)?;
-    chart.draw_series(LineSeries::new(vec![(0.0, 0.0), (1.0, 1.0)], BLACK.mix(0.4))).map_err(err)?;
-    for (i, (name, bins)) in series.iter().enumerate() {
-        let color = Palette99::pick(i).to_rgba();
-        let pts: Vec<(f64, f64)> =
-            bins.iter().filter(|b| b.count > 0).map(|b| (b.mean_confidence, b.frequency)).collect();
-        chart
-            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
-            .map_err(err)?
-            .label(name.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
-        chart.draw_series(pts.into_iter().map(|p| Circle::new(p, 4, color.filled()))).map_err(err)?;
-    }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(err)?;
-    root.present().map_err(err)?;
-    Ok(())
+    let series: Vec<(String, Vec<(f64, f64)>)> = series
+        .iter()
+        .map(|(name, bins)| {
+            (name.clone(), bins.iter().filter(|b| b.count > 0).map(|b| (b.mean_confidence, b.frequency)).collect())
+        })
+        .collect();
+    let axes = Axes {
+        size: (800, 640),
+        x: 0.0..1.0,
+        y: 0.0..1.0,
+        desc: ("confidence (bin mean)", "share of true loops"),
+        y_label: 55,
+    };
+    line_chart(path, title, axes, &series, Extras { diagonal: true, markers: true, legend_left: true })
 }
