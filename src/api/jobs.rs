@@ -1,7 +1,7 @@
 //! Offline sequences: many images in order, embedded in batches, added to a session and
 //! searched for loops, as a background job whose progress can be polled.
 use super::error::ApiError;
-use super::service::{make_thumbnail, Content, FrameInput, LoopService, QueryOverrides};
+use super::service::{check_robot_id, make_thumbnail, Content, FrameInput, LoopService, QueryOverrides};
 use crate::bags::{self, Selection};
 use crate::files::{is_image, natural_key};
 use crate::store::query::{LoopQuery, Scope};
@@ -312,6 +312,28 @@ impl Jobs {
 
     /// A job's status: this node's if it runs or ran the job here since it started, else (in a
     /// cluster) the log's, where a job still running on a node that is gone is interrupted.
+    /// Starts an offline sequence job on a session; its id is returned once its record is
+    /// durable (it answers after a restart), before the job has done anything.
+    pub async fn start_sequence(
+        &self,
+        service: &LoopService,
+        session: &str,
+        seq: SequenceRequest,
+    ) -> Result<String, ApiError> {
+        let s = service.store.session(session)?;
+        service.check_space(&s)?;
+        check_robot_id(&seq.robot_id)?;
+        let asked = seq.options.over(&job_defaults()).apply(&s.meta.default_query);
+        service.check_confidence(&s, &asked)?;
+        let id = self.start(service.clone(), s.meta.id.clone(), seq).await?;
+        service.store.durable_records().await?;
+        Ok(id)
+    }
+
+    pub async fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {
+        self.status(job_id).await?.ok_or_else(|| ApiError::NotFound(format!("job '{job_id}' not found")))
+    }
+
     pub async fn status(&self, id: &str) -> Result<Option<JobStatus>, ApiError> {
         let here = self.jobs.lock().get(id).map(|j| j.lock().clone());
         if here.is_some() {
@@ -415,10 +437,14 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
     let features = effective.verify.geometric || service.keeps_features();
     // Embedding, feature extraction and thumbnails run ahead in batches, order kept; adding,
     // searching and checking go one frame at a time, exactly as `add_and_query` answers a robot.
+    // Each frame ahead is a task of its own: it runs while this loop waits for a check. Polled
+    // only from here, a frame ahead granted a verification worker (the pool's semaphore is
+    // first come, first served) would hold it, unpolled, while this loop's check waited for
+    // that worker: the job stopped for good.
     let mut embedded = futures::stream::iter(seq.frames.into_iter().enumerate())
         .map(|(i, f)| {
             let (engine, verifier) = (engine.clone(), service.verifier.clone());
-            async move {
+            tokio::spawn(async move {
                 let embed = engine.embed_image(f.image.clone(), crate::model::network::Variant::FULL);
                 let extract = async {
                     match features {
@@ -431,13 +457,20 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
                 let (result, extracted, thumbnail) =
                     tokio::join!(embed, extract, make_thumbnail(&f.image, limits, thumbnails));
                 (i, f.name, f.robot_id, f.timestamp, result.map(|d| (d, extracted)), thumbnail)
-            }
+            })
         })
         .buffered(width);
     let mut names: HashMap<u64, (usize, String)> = HashMap::new();
     let mut failed = None;
     let mut saved = std::time::Instant::now();
-    while let Some((i, name, robot_id, timestamp, result, thumbnail)) = embedded.next().await {
+    while let Some(prepared) = embedded.next().await {
+        let (i, name, robot_id, timestamp, result, thumbnail) = match prepared {
+            Ok(p) => p,
+            Err(e) => {
+                failed = Some(format!("preparing a frame: {e}"));
+                break;
+            }
+        };
         if saved.elapsed() >= SAVE_EVERY {
             // With sled, durable with the next frame's commit.
             let now = status.lock().clone();

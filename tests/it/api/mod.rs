@@ -1,5 +1,6 @@
 mod confidence;
 mod inspect;
+mod jobs;
 mod loops;
 mod server;
 mod tenants;

@@ -101,12 +101,9 @@ async fn two_robots_stream_the_corridor_and_the_second_finds_the_first() {
     assert_eq!(visitor.len(), 111);
     let ref_id: std::collections::HashMap<u64, usize> =
         mapper.iter().enumerate().map(|(i, a)| (a.frame_id, i)).collect();
-    let gt = std::fs::read_to_string(data("corridor/gt.csv")).unwrap();
     let mut hits = 0;
-    for line in gt.lines().skip(1) {
-        let (q, refs) = line.split_once(',').unwrap();
-        let refs: Vec<usize> = refs.split_whitespace().map(|r| r.parse().unwrap()).collect();
-        let a = &visitor[q.parse::<usize>().unwrap()];
+    for (q, refs) in corridor_truth() {
+        let a = &visitor[q];
         assert_eq!(a.matches.len(), 3);
         assert!(a.matches.iter().all(|m| m.robot_id == "mapper"));
         hits += refs.contains(&ref_id[&a.matches[0].frame_id]) as usize;

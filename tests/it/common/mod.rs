@@ -117,3 +117,15 @@ pub fn session(name: &str, storage: loopd::store::Storage) -> loopd::store::NewS
         thumbnails: false,
     }
 }
+
+/// The Corridor's ground truth (corridor/gt.csv): each query frame's reference frames.
+pub fn corridor_truth() -> std::collections::HashMap<usize, Vec<usize>> {
+    let gt = std::fs::read_to_string(data("corridor/gt.csv")).expect("reading corridor/gt.csv");
+    gt.lines()
+        .skip(1)
+        .filter_map(|line| line.split_once(','))
+        .map(|(q, refs)| {
+            (q.parse().expect("a query index"), refs.split_whitespace().map(|r| r.parse().expect("an index")).collect())
+        })
+        .collect()
+}
