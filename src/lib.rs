@@ -1,9 +1,32 @@
 //! loopd: loop-closure detection as a service.
 //!
-//! Layers, dependencies pointing one way: `api` -> `engine` -> `model`, `store`; `verify` (local
-//! features and geometry) is used by `api` and `eval`; `train` (heads, whitening) uses `eval`;
-//! `export` (a session's loop graph as files) is used by `api`; `bags` (ROS bags to frames) by
-//! `api` and `cli`; `inspect` (thumbnails, similarity matrix, the inspector page) by `api`.
+//! # Layout
+//!
+//! One folder per layer; each imports only the layers below it (checked with the import graph of
+//! `src/`: no circle, no arrow running back up).
+//!
+//! - `cli/`: one file per subcommand; the top. `serve` wires the server, the rest are offline
+//!   tools or remote clients.
+//! - `train/`: the paper's attention and fusion heads and learned whitening on real data; uses
+//!   `eval` for its validation.
+//! - `eval/`: `loopd eval` (recall at 100% precision, recall@1, AP, the confidence sweep, plots);
+//!   runs the same search and checks as the server (`store::index`, `verify::check`).
+//! - `api/`: the network service. `service.rs` is what both transports do, written once;
+//!   `http/` (axum: router, state, handlers) and `grpc/` (tonic) only translate, and neither
+//!   imports the other; `wire.rs` holds what both read alike; `tenancy.rs` scopes every call to
+//!   the caller's tenant; `jobs.rs` runs offline sequence jobs (owned by the server, calling the
+//!   service); `kept.rs` and `loops.rs` the kept loop candidates; `server.rs` the wiring.
+//! - `engine/`: the inference engine, every frame's way to the one model thread.
+//! - `verify/`: local features, geometric and sequence checks, the one decision rule and the
+//!   calibrated confidence; reads `store`'s match and record types, never the reverse.
+//! - `auth/`: API keys, tenants, quotas and the admin key.
+//! - `export/`: a session's loop graph as files a SLAM back end reads.
+//! - `inspect/`: thumbnails, the similarity matrix and the loop inspector page.
+//! - `store/`: sessions on sled (or the PostgreSQL cluster), the in-memory search index
+//!   (`index.rs`, `kernels.rs`, `device.rs`, `query.rs`) and the kept loops.
+//! - `model/`: the descriptor network, weights, preprocessing.
+//! - `bags/`: ROS 1 and rosbag2 bags to frames.
+//! - `files.rs`, `pb.rs`: image file listings; the generated gRPC types.
 pub mod api;
 pub mod auth;
 pub mod bags;

@@ -1,4 +1,4 @@
-//! What the loop inspector reads beyond the loops (issue #18): a session's frames page by page,
+//! What the loop inspector reads beyond the loops: a session's frames page by page,
 //! a frame's thumbnail and the similarity matrix. Both APIs reach these through `tenancy.rs`.
 use super::error::ApiError;
 use super::service::LoopService;

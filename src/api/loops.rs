@@ -1,56 +1,11 @@
-//! Kept loop candidates (issue #18): what the service records after answering, and how clients
-//! list them and give their verdict. Both APIs reach these through `tenancy.rs`.
+//! Kept loop candidates: how clients list what the service recorded after answering, and give
+//! their verdict. Both APIs reach these through `tenancy.rs`.
 use super::error::ApiError;
+use super::kept::{loop_records, now, QueryFrame};
 use super::service::{LoopMatch, LoopService};
 use crate::store::loops::{LoopFilter, LoopRecord, Page, Transform, Verdict};
 use crate::store::Session;
-use crate::verify::geometric::RelativePose;
 use std::sync::Arc;
-
-fn now() -> f64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64()
-}
-
-pub fn transform(p: &RelativePose) -> Transform {
-    Transform { qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw, tx: p.tx, ty: p.ty, tz: p.tz }
-}
-
-/// The stored frame a query was answered for.
-pub struct QueryFrame<'a> {
-    pub id: u64,
-    pub robot: &'a str,
-    pub time: f64,
-}
-
-/// The records of the candidates answered for a stored frame, in answer order.
-pub fn loop_records(q: QueryFrame<'_>, matches: &[LoopMatch]) -> Vec<LoopRecord> {
-    let found = now();
-    matches
-        .iter()
-        .enumerate()
-        .map(|(rank, m)| {
-            let v = m.verification.as_ref();
-            LoopRecord {
-                query_frame: q.id,
-                match_frame: m.m.frame_id,
-                query_robot: q.robot.to_string(),
-                match_robot: m.m.robot_id.clone(),
-                query_time: q.time,
-                match_time: m.m.timestamp,
-                score: m.m.score,
-                rank: rank as u32,
-                confidence: m.confidence,
-                checked: v.is_some(),
-                verified: v.is_some_and(|v| v.verified),
-                inliers: v.map_or(0, |v| v.inliers as u32),
-                relative_pose: v.and_then(|v| v.relative_pose.as_ref()).map(transform),
-                inlier_matches: v.map_or_else(Vec::new, |v| v.inlier_matches.clone()),
-                found,
-                verdict: None,
-            }
-        })
-        .collect()
-}
 
 impl LoopService {
     /// Keeps the candidates answered again for a stored frame (a query on it; a new frame's

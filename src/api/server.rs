@@ -1,7 +1,7 @@
 //! One process, both APIs: gRPC (tonic) and HTTP (axum) over one engine and one store.
 use super::conn::{accept, ConnLimits};
+use super::grpc::admin::{AdminApi, AdminServer};
 use super::grpc::{self, GrpcApi, LoopdServer};
-use super::grpc_admin::{AdminApi, AdminServer};
 use super::http::{router, AppState};
 use super::service::LoopService;
 use super::tls::{Conn, Tls, TlsFiles};
@@ -270,7 +270,8 @@ impl RunningServer {
                             write and delete every session"
             );
         }
-        let service = LoopService::new(engine, store, cfg.max_jobs, cfg.verify.clone(), calibrator);
+        let service = LoopService::new(engine, store, cfg.verify.clone(), calibrator);
+        let jobs = Arc::new(super::jobs::Jobs::new(cfg.max_jobs, service.store.clone()));
         let (shutdown, rx) = tokio::sync::watch::channel(false);
         if let Some(c) = &cfg.cluster {
             tokio::spawn(follow_cluster(auth.clone(), service.store.clone(), c.tenant_refresh, rx.clone()));
@@ -293,7 +294,7 @@ impl RunningServer {
             members = Some(tokio::spawn(follow_members(service.store.clone(), c.tenant_refresh, rx.clone())));
         }
 
-        let state = Arc::new(AppState { service: service.clone(), auth: auth.clone() });
+        let state = Arc::new(AppState { service: service.clone(), auth: auth.clone(), jobs });
         let app = router(state, cfg.max_body_bytes).layer(tower_http::timeout::TimeoutLayer::with_status_code(
             axum::http::StatusCode::REQUEST_TIMEOUT,
             cfg.connections.request_timeout,

@@ -1,8 +1,7 @@
 //! What both APIs do, written once: gRPC and HTTP only translate to and from these calls, and
-//! reach the engine, the store and the jobs through nothing else.
+//! reach the engine and the store through nothing else (sequence jobs call it, `jobs.rs`).
 use super::error::ApiError;
-use super::jobs::{JobStatus, Jobs, SequenceRequest};
-use super::loops::{loop_records, QueryFrame};
+use super::kept::{loop_records, QueryFrame};
 use crate::engine::Engine;
 use crate::model::network::Variant;
 use crate::model::preprocess::ImageLimits;
@@ -24,7 +23,6 @@ use std::sync::Arc;
 pub struct LoopService {
     pub engine: Engine,
     pub store: Arc<Store>,
-    pub jobs: Arc<Jobs>,
     pub verifier: Verifier,
     /// The confidence of this server's descriptor space (None: answers carry none).
     pub calibrator: Option<Arc<Calibrator>>,
@@ -245,7 +243,7 @@ pub async fn make_thumbnail(bytes: &Bytes, limits: ImageLimits, wanted: bool) ->
     }
 }
 
-fn check_robot_id(robot: &str) -> Result<(), ApiError> {
+pub(super) fn check_robot_id(robot: &str) -> Result<(), ApiError> {
     if robot.is_empty() {
         return Err(ApiError::InvalidArgument("robot_id is required".into()));
     }
@@ -278,18 +276,10 @@ fn intrinsics(c: &Camera) -> Intrinsics {
 }
 
 impl LoopService {
-    pub fn new(
-        engine: Engine,
-        store: Arc<Store>,
-        max_jobs: usize,
-        verify: VerifyConfig,
-        calibrator: Option<Calibrator>,
-    ) -> Self {
-        let jobs = Arc::new(Jobs::new(max_jobs, store.clone()));
+    pub fn new(engine: Engine, store: Arc<Store>, verify: VerifyConfig, calibrator: Option<Calibrator>) -> Self {
         let service = Self {
             engine,
             store,
-            jobs,
             verifier: Verifier::new(verify),
             calibrator: calibrator.map(Arc::new),
             loops_not_kept: Default::default(),
@@ -362,7 +352,7 @@ impl LoopService {
     }
 
     /// Images embedded here may only go to sessions of this server's descriptor space.
-    fn check_space(&self, s: &Session) -> Result<(), ApiError> {
+    pub(super) fn check_space(&self, s: &Session) -> Result<(), ApiError> {
         let info = self.engine.info();
         if info.compatible(&s.meta.descriptor_id) {
             return Ok(());
@@ -447,7 +437,7 @@ impl LoopService {
     }
 
     /// A query may ask for a minimum confidence only where confidences are calibrated.
-    fn check_confidence(&self, s: &Session, q: &LoopQuery) -> Result<(), ApiError> {
+    pub(super) fn check_confidence(&self, s: &Session, q: &LoopQuery) -> Result<(), ApiError> {
         if q.min_confidence > 0.0 && self.calibrator_for(s).is_none() {
             return Err(ApiError::FailedPrecondition(format!(
                 "min_confidence needs a calibrated confidence, and this server has no calibrator for the \
@@ -623,22 +613,5 @@ impl LoopService {
         // Its best matches by descriptor: the candidates it votes for in later sequence checks.
         s.set_votes(id, votes);
         Ok((id, matches))
-    }
-
-    /// Starts an offline sequence job on a session; its id is returned once its record is
-    /// durable (it answers after a restart), before the job has done anything.
-    pub async fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
-        let s = self.store.session(session)?;
-        self.check_space(&s)?;
-        check_robot_id(&seq.robot_id)?;
-        let asked = seq.options.over(&super::jobs::job_defaults()).apply(&s.meta.default_query);
-        self.check_confidence(&s, &asked)?;
-        let id = self.jobs.start(self.clone(), s.meta.id.clone(), seq).await?;
-        self.store.durable_records().await?;
-        Ok(id)
-    }
-
-    pub async fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {
-        self.jobs.status(job_id).await?.ok_or_else(|| ApiError::NotFound(format!("job '{job_id}' not found")))
     }
 }

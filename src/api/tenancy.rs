@@ -3,7 +3,7 @@
 //! reach the service through this.
 use super::error::ApiError;
 use super::inspect::FramePage;
-use super::jobs::{JobStatus, SequenceRequest};
+use super::jobs::{JobStatus, Jobs, SequenceRequest};
 use super::service::{CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
 use crate::auth::quota::{InFlight, Refusal};
 use crate::auth::Caller;
@@ -197,18 +197,18 @@ impl Scoped<'_> {
         Ok(answer)
     }
 
-    pub async fn start_sequence(&self, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
+    pub async fn start_sequence(&self, jobs: &Jobs, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
         let sid = self.fresh(session).await?;
         // A job runs after this returns: the slot checks the share at submission only.
         drop(self.admit(seq.frames.len()).await?);
-        self.service.start_sequence(&sid, seq).await
+        jobs.start_sequence(self.service, &sid, seq).await
     }
 
     /// A job of one of this tenant's sessions.
-    pub async fn job(&self, job_id: &str) -> Result<JobStatus, ApiError> {
+    pub async fn job(&self, jobs: &Jobs, job_id: &str) -> Result<JobStatus, ApiError> {
         let not_found =
             || ApiError::NotFound(format!("job '{}' not found", job_id.chars().take(80).collect::<String>()));
-        let mut status = match self.service.job(job_id).await {
+        let mut status = match jobs.job(job_id).await {
             Err(ApiError::NotFound(_)) => return Err(not_found()),
             other => other?,
         };

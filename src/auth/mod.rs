@@ -1,4 +1,4 @@
-//! Who is calling: API keys, tenants, and the admin key (issue #13). Every session belongs to a
+//! Who is calling: API keys, tenants, and the admin key. Every session belongs to a
 //! tenant; a key sees only its tenant's sessions and jobs.
 pub mod caller;
 pub mod keys;

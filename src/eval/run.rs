@@ -293,10 +293,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
             // Where the query's past says it is now, beside what looks most alike now.
             let past_votes = &past_top[(i + 1).saturating_sub(v.sequence_length)..i];
             let have: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
-            let ids: Vec<u64> = verify::sequence::voted(past_votes, |id, steps| index.advance(id, steps))
-                .into_iter()
-                .filter(|id| !have.contains(id))
-                .collect();
+            let ids: Vec<u64> = index.voted(past_votes).into_iter().filter(|id| !have.contains(id)).collect();
             matches.extend(index.score_frames(q, &ids, &opts));
         }
         let ids: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();

@@ -1,4 +1,4 @@
-//! A session's loop graph as files a SLAM back end reads (issue #18): `frames.csv`, one TUM
+//! A session's loop graph as files a SLAM back end reads: `frames.csv`, one TUM
 //! trajectory per robot, `loops.csv` and `graph.g2o`, in one tar. Used by the HTTP export route
 //! (and so by `loopd export`).
 pub mod g2o;

@@ -1,4 +1,4 @@
-//! The loop inspector (issue #18): what a person needs to judge loops by eye. Frame thumbnails
+//! The loop inspector: what a person needs to judge loops by eye. Frame thumbnails
 //! (opt-in per session), a session's similarity matrix, and the page itself: static HTML and
 //! JavaScript compiled into the binary, served without data (it asks for the key and fetches
 //! the session through the same routes as any client).

@@ -1,6 +1,32 @@
 //! What a network is built from: backbone layout, the paper's additions, input size.
-use super::network::Variant;
 use serde::{Deserialize, Serialize};
+
+/// Which of the paper's additions run in a forward pass (the ablation switches).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Variant {
+    pub attention: bool,
+    pub fusion: bool,
+}
+
+impl Variant {
+    pub const FULL: Variant = Variant { attention: true, fusion: true };
+    pub const BACKBONE: Variant = Variant { attention: false, fusion: false };
+    pub const ALL: [Variant; 4] = [
+        Variant { attention: true, fusion: true },
+        Variant { attention: true, fusion: false },
+        Variant { attention: false, fusion: true },
+        Variant { attention: false, fusion: false },
+    ];
+
+    pub fn name(&self) -> &'static str {
+        match (self.attention, self.fusion) {
+            (true, true) => "attention+fusion",
+            (true, false) => "attention",
+            (false, true) => "fusion",
+            (false, false) => "backbone",
+        }
+    }
+}
 
 /// Where a stage's stride-2 sits in its first bottleneck block.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]

@@ -1,38 +1,12 @@
 //! The descriptor network: backbone, per-stage attention, fusion, pooled unit descriptor.
 use super::attention::StageAttention;
 use super::backbone::{Backbone, STAGE_CHANNELS};
+pub use super::config::Variant;
 use super::config::{ModelConfig, Pooling};
 use super::fusion::Fusion;
 use tch::{nn, Tensor};
 
 pub const DESCRIPTOR_DIM: i64 = 2048;
-
-/// Which of the paper's additions run in a forward pass (the ablation switches).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Variant {
-    pub attention: bool,
-    pub fusion: bool,
-}
-
-impl Variant {
-    pub const FULL: Variant = Variant { attention: true, fusion: true };
-    pub const BACKBONE: Variant = Variant { attention: false, fusion: false };
-    pub const ALL: [Variant; 4] = [
-        Variant { attention: true, fusion: true },
-        Variant { attention: true, fusion: false },
-        Variant { attention: false, fusion: true },
-        Variant { attention: false, fusion: false },
-    ];
-
-    pub fn name(&self) -> &'static str {
-        match (self.attention, self.fusion) {
-            (true, true) => "attention+fusion",
-            (true, false) => "attention",
-            (false, true) => "fusion",
-            (false, false) => "backbone",
-        }
-    }
-}
 
 /// All parameters always exist, whatever the variant, so one weight file serves every ablation.
 pub struct Network {

@@ -2,10 +2,10 @@
 //!
 //! sled keeps the first I/O error it meets (a full disk, say) and fails every later write with it
 //! until the database is opened again; `Store::reopen` does that once space is back, and
-//! [`Health`] is what readiness and the write paths read meanwhile.
+//! [`super::health::Health`] is what readiness and the write paths read meanwhile.
 use super::durability::GroupCommit;
+use super::health::Health;
 use super::StoreError;
-use parking_lot::Mutex;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -57,53 +57,6 @@ impl Disk {
         self.db.insert(b"loopd/probe", &now.as_nanos().to_le_bytes()[..])?;
         self.db.flush()?;
         Ok(())
-    }
-}
-
-/// A sled error as a person reads it ("No space left on device (os error 28)", not sled's Debug
-/// form of the I/O error).
-pub fn describe(e: &sled::Error) -> String {
-    match e {
-        sled::Error::Io(io) => format!("I/O error: {io}"),
-        e => e.to_string(),
-    }
-}
-
-/// The storage failure writes are refused for, if any (set by the flusher or a failed write,
-/// cleared by a successful reopen).
-#[derive(Default)]
-pub struct Health {
-    failure: Mutex<Option<String>>,
-}
-
-impl Health {
-    pub fn fail(&self, error: &str) {
-        let mut f = self.failure.lock();
-        if f.is_none() {
-            tracing::error!(error, "storage failed: writes are refused until the store is reopened");
-        }
-        *f = Some(error.to_string());
-    }
-
-    pub fn clear(&self) {
-        if self.failure.lock().take().is_some() {
-            tracing::info!("storage recovered: writes accepted again");
-        }
-    }
-
-    pub fn failure(&self) -> Option<String> {
-        self.failure.lock().clone()
-    }
-
-    /// Ok while writes can succeed; else the error a write gets at once (without touching a
-    /// database that would fail it anyway).
-    pub fn writable(&self) -> Result<(), StoreError> {
-        match self.failure() {
-            None => Ok(()),
-            Some(e) => Err(StoreError::Unavailable(format!(
-                "storage failed ({e}); writes are refused until it recovers (retry later)"
-            ))),
-        }
     }
 }
 

@@ -3,7 +3,7 @@
 //! Writers insert into sled, then wait here. One flusher thread takes every waiter queued
 //! so far and runs a single `flush()` (one fsync) for all of them, so N robots writing at
 //! once cost about one fsync per flush interval instead of N.
-use super::disk::Health;
+use super::health::{describe, Health};
 use std::sync::mpsc;
 use std::sync::Arc;
 use tokio::sync::oneshot;
@@ -32,7 +32,7 @@ impl GroupCommit {
                     let mut waiters = vec![first];
                     waiters.extend(rx.try_iter());
                     // Every waiter's insert happened before it queued, so this flush covers it.
-                    let result = db.flush().map(|_| ()).map_err(|e| super::disk::describe(&e));
+                    let result = db.flush().map(|_| ()).map_err(|e| describe(&e));
                     if let Err(e) = &result {
                         health.fail(e);
                     }

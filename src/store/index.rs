@@ -209,6 +209,24 @@ impl SessionIndex {
         self.by_robot[robot as usize].get(at + steps).copied()
     }
 
+    /// Candidates the query's past votes for (sequence verification): each earlier frame's own
+    /// best matches (`past_votes`, oldest first, the frame just before the query last), moved
+    /// forward along their trajectory by how far back that frame is. A place the robot passed L
+    /// frames ago is where it would be now if it is retracing it.
+    pub fn voted(&self, past_votes: &[Vec<u64>]) -> Vec<u64> {
+        let mut out = Vec::new();
+        for (back, votes) in past_votes.iter().rev().enumerate() {
+            for &id in votes {
+                if let Some(now) = self.advance(id, back + 1) {
+                    if !out.contains(&now) {
+                        out.push(now);
+                    }
+                }
+            }
+        }
+        out
+    }
+
     /// The votes of a robot's newest `n` frames (or of the `n` frames before `before` on its
     /// trajectory), oldest first.
     pub fn votes(&self, robot_id: Option<&str>, before: Option<u64>, n: usize) -> Vec<Vec<u64>> {

@@ -1,4 +1,4 @@
-//! Loop candidates kept per session (issue #18): each candidate loopd answered for a stored
+//! Loop candidates kept per session: each candidate loopd answered for a stored
 //! frame, with its verification outcome and a client's verdict, so a SLAM back end can fetch the
 //! session's loop graph later. Keyed by (query frame, match frame), big-endian: listed in frame
 //! order; a pair answered again is updated, its verdict kept.

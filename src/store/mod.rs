@@ -4,6 +4,7 @@ mod cluster_jobs;
 pub mod device;
 pub mod disk;
 pub mod durability;
+pub mod health;
 pub mod index;
 pub mod kernels;
 pub mod loops;
@@ -18,7 +19,8 @@ mod records;
 mod reopen;
 
 pub use cluster::tracking_staleness;
-use disk::{Disk, Health};
+use disk::Disk;
+use health::Health;
 use index::SessionIndex;
 use parking_lot::{MappedRwLockReadGuard, Mutex, RwLock, RwLockReadGuard};
 use query::{LoopQuery, Match, Pose};
@@ -57,7 +59,7 @@ pub enum StoreError {
 
 impl From<sled::Error> for StoreError {
     fn from(e: sled::Error) -> Self {
-        StoreError::Storage(disk::describe(&e))
+        StoreError::Storage(health::describe(&e))
     }
 }
 
@@ -652,15 +654,13 @@ impl Session {
     }
 
     /// Candidates sequence verification adds: the frames the past votes for (see
-    /// `verify::sequence::voted`), scored against `query` under the query's filters. The past is
+    /// `index::SessionIndex::voted`), scored against `query` under the query's filters. The past is
     /// the robot's newest `n` frames, or the `n` frames before `stored`.
     pub fn voted(&self, query: &[f32], q: &LoopQuery, stored: Option<u64>, n: usize, skip: &[u64]) -> Vec<Match> {
         let index = self.index.read();
         let votes = index.votes(q.robot_id.as_deref(), stored, n);
-        let ids: Vec<u64> = crate::verify::sequence::voted(&votes, |id, steps| index.advance(id, steps))
-            .into_iter()
-            .filter(|id| !skip.contains(id) && Some(*id) != stored)
-            .collect();
+        let ids: Vec<u64> =
+            index.voted(&votes).into_iter().filter(|id| !skip.contains(id) && Some(*id) != stored).collect();
         index.score_frames(query, &ids, q)
     }
 

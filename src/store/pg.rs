@@ -1,4 +1,4 @@
-//! The durable frame log on PostgreSQL with synchronous replication (issue #17): the cluster's
+//! The durable frame log on PostgreSQL with synchronous replication: the cluster's
 //! copy of every session and frame, beside which loopd nodes keep their in-memory exact indexes
 //! (`SessionIndex`), rebuilt from it. `serve --cluster` uses it through `cluster.rs`; members
 //! (`pg_members.rs`) and sequence jobs (`pg_jobs.rs`) have their tables beside it (docs/cluster.md).

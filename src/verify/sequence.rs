@@ -34,24 +34,6 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
-/// Candidates the query's past votes for: each earlier frame's own best matches (`past_votes`,
-/// oldest first, the frame just before the query last), moved forward along their trajectory by
-/// how far back that frame is (`advance(id, steps)`). A place the robot passed L frames ago is
-/// where it would be now if it is retracing it.
-pub fn voted(past_votes: &[Vec<u64>], advance: impl Fn(u64, usize) -> Option<u64>) -> Vec<u64> {
-    let mut out = Vec::new();
-    for (back, votes) in past_votes.iter().rev().enumerate() {
-        for &id in votes {
-            if let Some(now) = advance(id, back + 1) {
-                if !out.contains(&now) {
-                    out.push(now);
-                }
-            }
-        }
-    }
-    out
-}
-
 /// A candidate's place for the uniqueness test: its robot and its position in that robot's
 /// trajectory.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -1,5 +1,5 @@
 //! The gRPC Admin service: tenants and keys for the admin key, as HTTP's /v1/tenants.
-use super::error::ApiError;
+use crate::api::error::ApiError;
 use crate::auth::{Auth, Limits, TenantInfo};
 use crate::pb;
 use std::sync::Arc;
@@ -13,7 +13,7 @@ pub struct AdminApi {
 
 impl AdminApi {
     fn require_admin<T>(&self, req: &Request<T>) -> Result<(), Status> {
-        let caller = super::grpc::caller(req)?;
+        let caller = super::caller(req)?;
         Ok(self.auth.require_admin(&caller, true).map_err(ApiError::from)?)
     }
 }

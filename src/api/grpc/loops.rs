@@ -1,7 +1,7 @@
 //! The gRPC side of kept loops (ListLoops, SetLoopVerdict); the Loopd service delegates here.
-use super::error::ApiError;
-use super::http_loops::cursor;
-use super::service::LoopService;
+use crate::api::error::ApiError;
+use crate::api::service::LoopService;
+use crate::api::wire::cursor;
 use crate::auth::Caller;
 use crate::pb;
 use crate::store::loops::{LoopFilter, LoopRecord, Transform};

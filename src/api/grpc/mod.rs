@@ -1,6 +1,9 @@
 //! gRPC (tonic): `proto/loopd/v1/loopd.proto` translated onto `LoopService`.
-use super::error::ApiError;
-use super::service::{Content, CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
+pub mod admin;
+pub mod loops;
+
+use crate::api::error::ApiError;
+use crate::api::service::{Content, CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
 use crate::auth::{Auth, Caller};
 use crate::pb;
 use crate::store::query::{Pose, Scope};
@@ -276,12 +279,12 @@ impl pb::loopd_server::Loopd for GrpcApi {
 
     async fn list_loops(&self, req: Request<pb::ListLoopsRequest>) -> Result<Response<pb::ListLoopsResponse>, Status> {
         let caller = caller(&req)?;
-        Ok(Response::new(super::grpc_loops::list(&self.service, caller, req.into_inner()).await?))
+        Ok(Response::new(loops::list(&self.service, caller, req.into_inner()).await?))
     }
 
     async fn set_loop_verdict(&self, req: Request<pb::SetLoopVerdictRequest>) -> Result<Response<pb::Loop>, Status> {
         let caller = caller(&req)?;
-        Ok(Response::new(super::grpc_loops::set_verdict(&self.service, caller, req.into_inner()).await?))
+        Ok(Response::new(loops::set_verdict(&self.service, caller, req.into_inner()).await?))
     }
 
     async fn get_thumbnail(&self, req: Request<pb::GetThumbnailRequest>) -> Result<Response<pb::Thumbnail>, Status> {

@@ -1,7 +1,7 @@
 //! HTTP routes of the loop inspector: the page and its two assets (served without a key: they
 //! hold no data), a session's frames, a frame's thumbnail and the similarity matrix.
-use super::error::ApiError;
-use super::http::{parse_u64, AppState, FrameView};
+use super::state::{parse_u64, AppState, FrameView};
+use crate::api::error::ApiError;
 use crate::auth::Caller;
 use crate::inspect::similarity::Similarity;
 use axum::extract::rejection::QueryRejection;

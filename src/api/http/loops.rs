@@ -1,6 +1,7 @@
 //! HTTP routes of kept loops: a paged, filtered listing and a client's verdict.
-use super::error::ApiError;
-use super::http::AppState;
+use super::state::{json_error, parse_u64, AppState};
+use crate::api::error::ApiError;
+use crate::api::wire::cursor;
 use crate::auth::Caller;
 use crate::store::loops::{LoopFilter, LoopRecord, Transform};
 use axum::extract::rejection::{JsonRejection, QueryRejection};
@@ -31,12 +32,6 @@ pub struct LoopPage {
     loops: Vec<LoopRecord>,
     /// Where the next page starts (`after=`), or null on the last page.
     next: Option<String>,
-}
-
-pub fn cursor(s: &str) -> Result<(u64, u64), ApiError> {
-    s.split_once('-')
-        .and_then(|(q, m)| Some((q.parse().ok()?, m.parse().ok()?)))
-        .ok_or_else(|| ApiError::InvalidArgument(format!("after must be QUERY-MATCH frame ids, got '{s}'")))
 }
 
 pub async fn list_loops(
@@ -74,8 +69,8 @@ pub async fn set_verdict(
     Path((id, query, matched)): Path<(String, String, String)>,
     body: Result<Json<VerdictBody>, JsonRejection>,
 ) -> Result<Json<LoopRecord>, ApiError> {
-    let pair = (super::http::parse_u64("query_frame", &query)?, super::http::parse_u64("match_frame", &matched)?);
-    let Json(v) = body.map_err(super::http::json_error)?;
+    let pair = (parse_u64("query_frame", &query)?, parse_u64("match_frame", &matched)?);
+    let Json(v) = body.map_err(json_error)?;
     let scoped = s.service.scoped(caller);
     Ok(Json(scoped.set_verdict(&id, pair, v.accepted, v.relative_pose, v.covariance).await?))
 }

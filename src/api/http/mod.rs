@@ -1,8 +1,12 @@
 //! HTTP (axum, JSON under /v1): the operations of `LoopService`, as gRPC has them, plus embedding,
 //! frame reads and offline sequence jobs; `openapi.yaml` describes each route.
-use super::error::ApiError;
-use super::jobs::{JobStatus, SequenceRequest};
-use super::service::{Content, CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
+pub mod inspect;
+pub mod loops;
+mod state;
+
+use crate::api::error::ApiError;
+use crate::api::jobs::{JobStatus, SequenceRequest};
+use crate::api::service::{Content, CreateSession, FrameInput, LoopMatch, QueryOverrides, QueryTarget};
 use crate::auth::{Auth, Caller};
 use crate::model::network::Variant;
 use crate::store::query::Pose;
@@ -15,13 +19,10 @@ use axum::routing::{get, post};
 use axum::Extension;
 use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
+use state::{body_error, json_error, parse_u64};
+pub use state::{AppState, FrameView};
 use std::collections::HashMap;
 use std::sync::Arc;
-
-pub struct AppState {
-    pub service: LoopService,
-    pub auth: Arc<Auth>,
-}
 
 /// `max_body_bytes` bounds sequence uploads only; every other route takes at most one image
 /// (plus form fields), so a client cannot make the server buffer a huge body there.
@@ -39,18 +40,18 @@ pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
         .route("/v1/embed", post(embed))
         .route("/v1/sessions", post(create_session).get(list_sessions))
         .route("/v1/sessions/{id}", get(get_session).delete(delete_session))
-        .route("/v1/sessions/{id}/frames", post(add_frame).get(super::http_inspect::list_frames))
+        .route("/v1/sessions/{id}/frames", post(add_frame).get(inspect::list_frames))
         .route("/v1/sessions/{id}/frames/{frame_id}", get(get_frame))
-        .route("/v1/sessions/{id}/frames/{frame_id}/thumbnail", get(super::http_inspect::thumbnail))
-        .route("/v1/sessions/{id}/similarity", get(super::http_inspect::similarity))
-        .route("/v1/sessions/{id}/inspect", get(super::http_inspect::page))
-        .route("/v1/inspector/app.js", get(super::http_inspect::script))
-        .route("/v1/inspector/app.css", get(super::http_inspect::style))
+        .route("/v1/sessions/{id}/frames/{frame_id}/thumbnail", get(inspect::thumbnail))
+        .route("/v1/sessions/{id}/similarity", get(inspect::similarity))
+        .route("/v1/sessions/{id}/inspect", get(inspect::page))
+        .route("/v1/inspector/app.js", get(inspect::script))
+        .route("/v1/inspector/app.css", get(inspect::style))
         .route("/v1/sessions/{id}/query", post(query))
         .route("/v1/sessions/{id}/add_and_query", post(add_and_query))
-        .route("/v1/sessions/{id}/loops", get(super::http_loops::list_loops))
-        .route("/v1/sessions/{id}/export", get(super::http_loops::export))
-        .route("/v1/sessions/{id}/loops/{query_frame}/{match_frame}/verdict", post(super::http_loops::set_verdict))
+        .route("/v1/sessions/{id}/loops", get(loops::list_loops))
+        .route("/v1/sessions/{id}/export", get(loops::export))
+        .route("/v1/sessions/{id}/loops/{query_frame}/{match_frame}/verdict", post(loops::set_verdict))
         .route("/v1/jobs/{job_id}", get(job_status))
         .route("/v1/tenants", post(create_tenant).get(list_tenants))
         .route("/v1/tenants/{name}", axum::routing::delete(revoke_tenant))
@@ -192,22 +193,6 @@ async fn delete_session(
     Ok(StatusCode::NO_CONTENT)
 }
 
-/// A stored frame as HTTP answers it (one frame, or each of a listing's).
-#[derive(Serialize)]
-pub(super) struct FrameView {
-    frame_id: u64,
-    robot_id: String,
-    timestamp: f64,
-    pose: Option<Pose>,
-    metadata: Option<serde_json::Value>,
-}
-
-impl FrameView {
-    pub(super) fn new(frame_id: u64, h: crate::store::record::FrameHeader) -> Self {
-        Self { frame_id, robot_id: h.robot_id, timestamp: h.timestamp, pose: h.pose, metadata: h.metadata }
-    }
-}
-
 async fn get_frame(
     State(s): State<Arc<AppState>>,
     Extension(caller): Extension<Caller>,
@@ -231,10 +216,6 @@ struct FrameFields {
     options: Option<QueryOverrides>,
     #[serde(skip)]
     image: Option<Bytes>,
-}
-
-pub(super) fn parse_u64(name: &str, v: &str) -> Result<u64, ApiError> {
-    v.parse().map_err(|_| ApiError::InvalidArgument(format!("{name} must be a non-negative integer, got '{v}'")))
 }
 
 /// Text form fields (multipart or query string) into the same JSON shape as a JSON body.
@@ -324,18 +305,6 @@ async fn read_form(req: Request, file_parts: &[&str]) -> Result<Form, ApiError> 
         }
     }
     Ok(Form { fields, files, body: None })
-}
-
-fn body_error(status: StatusCode, text: String) -> ApiError {
-    if status == StatusCode::PAYLOAD_TOO_LARGE {
-        ApiError::TooLarge(text)
-    } else {
-        ApiError::InvalidArgument(text)
-    }
-}
-
-pub(super) fn json_error(e: axum::extract::rejection::JsonRejection) -> ApiError {
-    body_error(e.status(), e.body_text())
 }
 
 fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
@@ -442,7 +411,7 @@ async fn start_sequence(
     let seq = tokio::task::spawn_blocking(move || SequenceRequest::from_form(form.fields, files, form.body))
         .await
         .map_err(|e| ApiError::Internal(format!("reading the upload failed: {e}")))??;
-    let job_id = scoped.start_sequence(&id, seq).await?;
+    let job_id = scoped.start_sequence(&s.jobs, &id, seq).await?;
     Ok((StatusCode::ACCEPTED, Json(JobCreated { status_url: format!("/v1/jobs/{job_id}"), job_id })))
 }
 
@@ -451,7 +420,7 @@ async fn job_status(
     Extension(caller): Extension<Caller>,
     Path(job_id): Path<String>,
 ) -> Result<Json<JobStatus>, ApiError> {
-    Ok(Json(s.service.scoped(caller).job(&job_id).await?))
+    Ok(Json(s.service.scoped(caller).job(&s.jobs, &job_id).await?))
 }
 
 /// Who is calling, from `Authorization: Bearer <key>`, before any route runs: health, readiness
@@ -464,7 +433,7 @@ async fn authenticate(
     next: axum::middleware::Next,
 ) -> axum::response::Response {
     let path = req.uri().path();
-    if path == "/healthz" || path == "/readyz" || super::http_inspect::is_static(path) {
+    if path == "/healthz" || path == "/readyz" || inspect::is_static(path) {
         return next.run(req).await;
     }
     // Refused before its body is read: an HTTP/1 connection cannot be reused after that (the
