@@ -1,15 +1,10 @@
 //! What is kept of the candidates answered for a stored frame: one loop record each, in answer
 //! order (both the service and the listings in `loops.rs` build on these).
-use crate::store::loops::{LoopRecord, Transform};
-use crate::verify::geometric::RelativePose;
+use crate::store::loops::LoopRecord;
 use crate::verify::LoopMatch;
 
 pub fn now() -> f64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_secs_f64()
-}
-
-pub fn transform(p: &RelativePose) -> Transform {
-    Transform { qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw, tx: p.tx, ty: p.ty, tz: p.tz }
 }
 
 /// The stored frame a query was answered for.
@@ -40,7 +35,7 @@ pub fn loop_records(q: QueryFrame<'_>, matches: &[LoopMatch]) -> Vec<LoopRecord>
                 checked: v.is_some(),
                 verified: v.is_some_and(|v| v.verified),
                 inliers: v.map_or(0, |v| v.inliers as u32),
-                relative_pose: v.and_then(|v| v.relative_pose.as_ref()).map(transform),
+                relative_pose: v.and_then(|v| v.relative_pose.as_ref()).copied(),
                 inlier_matches: v.map_or_else(Vec::new, |v| v.inlier_matches.clone()),
                 found,
                 verdict: None,

@@ -244,13 +244,10 @@ pub async fn make_thumbnail(bytes: &Bytes, limits: ImageLimits, wanted: bool) ->
 }
 
 pub(super) fn check_robot_id(robot: &str) -> Result<(), ApiError> {
-    if robot.is_empty() {
-        return Err(ApiError::InvalidArgument("robot_id is required".into()));
+    match crate::store::robot_id_error(robot) {
+        Some(e) => Err(ApiError::InvalidArgument(e.into())),
+        None => Ok(()),
     }
-    if robot.len() > 128 || robot.chars().any(char::is_control) {
-        return Err(ApiError::InvalidArgument("robot_id must be 1-128 bytes without control characters".into()));
-    }
-    Ok(())
 }
 
 pub enum QueryTarget {

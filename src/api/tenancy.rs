@@ -89,11 +89,7 @@ impl Scoped<'_> {
                 )));
             }
         }
-        let id = req.id.take().filter(|s| !s.is_empty()).unwrap_or_else(|| {
-            let nanos =
-                std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos();
-            format!("s{nanos:x}")
-        });
+        let id = req.id.take().filter(|s| !s.is_empty()).unwrap_or_else(crate::store::new_session_id);
         if id.contains('/') {
             return Err(ApiError::InvalidArgument(
                 "session id must be 1-64 characters of letters, digits, '-', '_' or '.', with a letter or digit".into(),

@@ -6,6 +6,28 @@ use subtle::ConstantTimeEq;
 
 pub const PREFIX: &str = "lpd_";
 
+/// Fewest characters of an admin key: the server and `loopd tenant` refuse a shorter one.
+pub const MIN_ADMIN_KEY: usize = 16;
+
+/// The admin key: the file's first line, else `LOOPD_ADMIN_KEY` (never a flag value, which any
+/// user could read in `ps`); None when neither gives one, an error when it is shorter than
+/// [`MIN_ADMIN_KEY`] or the file cannot be read.
+pub fn read_admin_key(file: Option<&std::path::Path>) -> anyhow::Result<Option<String>> {
+    let (key, source) = match file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| anyhow::anyhow!("reading the admin key file {}: {e}", path.display()))?;
+            (text.lines().next().unwrap_or("").trim().to_string(), format!("the admin key in {}", path.display()))
+        }
+        None => match std::env::var("LOOPD_ADMIN_KEY") {
+            Ok(key) if !key.trim().is_empty() => (key.trim().to_string(), "LOOPD_ADMIN_KEY".to_string()),
+            _ => return Ok(None),
+        },
+    };
+    anyhow::ensure!(key.len() >= MIN_ADMIN_KEY, "{source} is shorter than {MIN_ADMIN_KEY} characters");
+    Ok(Some(key))
+}
+
 /// A new key: (key id, the whole key to give the client once, the secret's hash to keep).
 pub fn new_key() -> (String, String, [u8; 32]) {
     let mut id = [0u8; 6];
@@ -65,5 +87,17 @@ mod tests {
         for bad in ["", "lpd_", "lpd_zz_yy", &key[..key.len() - 1], &key.replace("lpd_", "xyz_")] {
             assert!(parse(bad).is_none(), "{bad}");
         }
+    }
+
+    #[test]
+    fn an_admin_key_file_gives_its_first_line_and_a_short_key_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let (good, short) = (dir.path().join("good"), dir.path().join("short"));
+        std::fs::write(&good, "  admin-key-0123456789  \nsecond line\n").unwrap();
+        std::fs::write(&short, "admin-key-01234\n").unwrap();
+        assert_eq!(read_admin_key(Some(&good)).unwrap().as_deref(), Some("admin-key-0123456789"));
+        let e = read_admin_key(Some(&short)).unwrap_err().to_string();
+        assert!(e.contains("shorter than 16 characters"), "{e}");
+        assert!(read_admin_key(Some(&dir.path().join("missing"))).is_err());
     }
 }

@@ -161,23 +161,9 @@ impl ServeArgs {
         })
     }
 
-    /// The admin key: the file's first line, or `LOOPD_ADMIN_KEY` (never a flag value, which any
-    /// user could read in `ps`).
+    /// The admin key (`auth::keys::read_admin_key`: the file's first line, or `LOOPD_ADMIN_KEY`).
     pub fn admin_key(&self) -> Result<Option<String>> {
-        if let Some(path) = &self.admin_key_file {
-            let text = std::fs::read_to_string(path)
-                .map_err(|e| anyhow::anyhow!("reading the admin key file {}: {e}", path.display()))?;
-            let key = text.lines().next().unwrap_or("").trim().to_string();
-            anyhow::ensure!(key.len() >= 16, "the admin key in {} is shorter than 16 characters", path.display());
-            return Ok(Some(key));
-        }
-        match std::env::var("LOOPD_ADMIN_KEY") {
-            Ok(key) if !key.trim().is_empty() => {
-                anyhow::ensure!(key.trim().len() >= 16, "LOOPD_ADMIN_KEY is shorter than 16 characters");
-                Ok(Some(key.trim().to_string()))
-            }
-            _ => Ok(None),
-        }
+        crate::auth::keys::read_admin_key(self.admin_key_file.as_deref())
     }
 
     pub fn server_config(&self) -> ServerConfig {

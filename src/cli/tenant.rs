@@ -53,11 +53,7 @@ enum TenantCommand {
 }
 
 fn admin_key(file: &Option<PathBuf>) -> Result<String> {
-    let key = match file {
-        Some(path) => std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?,
-        None => std::env::var("LOOPD_ADMIN_KEY").context("no admin key: set LOOPD_ADMIN_KEY or --admin-key-file")?,
-    };
-    Ok(key.lines().next().unwrap_or("").trim().to_string())
+    crate::auth::keys::read_admin_key(file.as_deref())?.context("no admin key: set LOOPD_ADMIN_KEY or --admin-key-file")
 }
 
 pub fn run(a: TenantArgs) -> Result<ExitCode> {

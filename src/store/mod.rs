@@ -525,14 +525,33 @@ impl Store {
     }
 }
 
-/// A new session's metadata, its id checked (or picked: `s` and the time in hex).
+/// A session id picked for a request that names none: `s` and the time in hex (the store's and
+/// a tenant's, which prefixes it).
+pub fn new_session_id() -> String {
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+    format!("s{:x}", now.as_nanos())
+}
+
+/// The one robot id rule: why `robot` is not a robot id (1-128 bytes without control
+/// characters), or None.
+pub fn robot_id_error(robot: &str) -> Option<&'static str> {
+    if robot.is_empty() {
+        Some("robot_id is required")
+    } else if robot.len() > 128 || robot.chars().any(char::is_control) {
+        Some("robot_id must be 1-128 bytes without control characters")
+    } else {
+        None
+    }
+}
+
+/// A new session's metadata, its id checked (or picked by [`new_session_id`]).
 fn new_meta(id: Option<String>, new: NewSession) -> Result<SessionMeta, StoreError> {
     let NewSession { name, dim, descriptor_id, storage, default_query, camera, thumbnails } = new;
     if !(1..=65536).contains(&dim) {
         return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
     }
     let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
-    let id = id.unwrap_or_else(|| format!("s{:x}", now.as_nanos()));
+    let id = id.unwrap_or_else(new_session_id);
     if !valid_session_id(&id) {
         return Err(StoreError::InvalidArgument(format!(
             "session id '{id}' must be 1-64 characters of letters, digits, '-', '_' or '.', with a letter or digit"
@@ -573,8 +592,8 @@ fn check_new_frame(s: &Session, f: &NewFrame) -> Result<(), StoreError> {
             s.meta.dim
         )));
     }
-    if f.robot_id.is_empty() || f.robot_id.len() > 128 {
-        return Err(StoreError::InvalidArgument("robot_id must be 1-128 characters".into()));
+    if let Some(e) = robot_id_error(&f.robot_id) {
+        return Err(StoreError::InvalidArgument(e.into()));
     }
     if !f.timestamp.is_finite() {
         return Err(StoreError::InvalidArgument("timestamp must be a finite number".into()));
@@ -756,5 +775,22 @@ impl Trees {
             loops: db.open_tree(loops_tree_name(id))?,
             thumbs: db.open_tree(thumbs_tree_name(id))?,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_robot_id_rule_in_bytes_without_control_characters() {
+        assert_eq!(robot_id_error(""), Some("robot_id is required"));
+        assert_eq!(robot_id_error(&"r".repeat(128)), None);
+        assert!(robot_id_error(&"r".repeat(129)).is_some());
+        // 64 two-byte characters are 128 bytes; one more is over, in bytes.
+        assert_eq!(robot_id_error(&"é".repeat(64)), None);
+        assert!(robot_id_error(&"é".repeat(65)).is_some());
+        assert!(robot_id_error("robot\n1").is_some());
+        assert!(new_session_id().starts_with('s') && valid_session_id(&new_session_id()));
     }
 }

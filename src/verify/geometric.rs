@@ -159,17 +159,9 @@ impl Verification {
     }
 }
 
-/// T_query_candidate: unit quaternion (qw >= 0) and unit translation direction.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct RelativePose {
-    pub qx: f64,
-    pub qy: f64,
-    pub qz: f64,
-    pub qw: f64,
-    pub tx: f64,
-    pub ty: f64,
-    pub tz: f64,
-}
+/// T_query_candidate: unit quaternion (qw >= 0) and unit translation direction; the one rigid
+/// transform type, as kept with a loop (`store::loops::Transform`).
+pub type RelativePose = crate::store::loops::Transform;
 
 impl RelativePose {
     pub fn rotation(&self) -> UnitQuaternion<f64> {

@@ -6,7 +6,8 @@ use crate::auth::Caller;
 use crate::pb;
 use crate::store::loops::{LoopFilter, LoopRecord, Transform};
 
-fn pose_to_pb(t: Transform) -> pb::RelativePose {
+/// The one rigid transform type (a verified pose, a kept loop's, a client's) as gRPC sends it.
+pub fn pose_to_pb(t: Transform) -> pb::RelativePose {
     pb::RelativePose { qx: t.qx, qy: t.qy, qz: t.qz, qw: t.qw, tx: t.tx, ty: t.ty, tz: t.tz }
 }
 

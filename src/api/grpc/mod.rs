@@ -80,15 +80,7 @@ fn verification_to_pb(v: Verification) -> pb::Verification {
         inlier_ratio: v.inlier_ratio,
         verified: v.verified,
         reason: v.reason.unwrap_or_default(),
-        relative_pose: v.relative_pose.map(|p| pb::RelativePose {
-            qx: p.qx,
-            qy: p.qy,
-            qz: p.qz,
-            qw: p.qw,
-            tx: p.tx,
-            ty: p.ty,
-            tz: p.tz,
-        }),
+        relative_pose: v.relative_pose.map(loops::pose_to_pb),
     }
 }
 

@@ -100,7 +100,7 @@ fn euroc_loops_verify_with_correct_relative_rotation() {
     for (q, c) in [(1usize, 0usize), (3, 2)] {
         let v = verify(&e[q], &e[c], Some(&k), &p);
         assert!(v.verified, "q{q} c{c}: {v:?}");
-        let pose = v.relative_pose.clone().expect("pose for a verified loop with intrinsics");
+        let pose = v.relative_pose.expect("pose for a verified loop with intrinsics");
         let gt = gt_rotation(POSES[q], POSES[c]);
         let err = (pose.rotation().inverse() * gt).angle().to_degrees();
         // Kimera-VIO's own mono test tolerance on these frames is 0.05 rad (2.9 deg).
