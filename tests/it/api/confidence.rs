@@ -20,6 +20,13 @@ async fn shipped_server(dir: &std::path::Path, calibration: Calibration) -> anyh
     RunningServer::start(cfg, shipped_model()).await
 }
 
+/// The shipped server with the shipped calibrator: the server, its HTTP base URL, a client.
+async fn shipped(dir: &std::path::Path) -> (RunningServer, String, reqwest::Client) {
+    let server = shipped_server(dir, Calibration::Shipped(loopd::verify::confidence::SHIPPED.into())).await.unwrap();
+    let base = format!("http://{}", server.http_addr);
+    (server, base, reqwest::Client::new())
+}
+
 fn desk(i: usize) -> bytes::Bytes {
     std::fs::read(data(&format!("slambook2-ch11/{i}.png"))).unwrap().into()
 }
@@ -49,10 +56,7 @@ fn desk_form() -> reqwest::multipart::Form {
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn a_job_with_default_options_finds_and_verifies_the_desk_loop_and_its_frames_keep_features() {
     let dir = tempfile::tempdir().unwrap();
-    let server =
-        shipped_server(dir.path(), Calibration::Shipped(loopd::verify::confidence::SHIPPED.into())).await.unwrap();
-    let base = format!("http://{}", server.http_addr);
-    let http = reqwest::Client::new();
+    let (server, base, http) = shipped(dir.path()).await;
     let info: Value = http.get(format!("{base}/v1/info")).send().await.unwrap().json().await.unwrap();
     let loop_confidence = info["loop_confidence"].as_f64().expect("the shipped model has a calibrator");
     http.post(format!("{base}/v1/sessions")).json(&json!({ "id": "desk" })).send().await.unwrap();
@@ -74,15 +78,12 @@ async fn a_job_with_default_options_finds_and_verifies_the_desk_loop_and_its_fra
     }
     // The job's frames keep their features: a later query on 10.png's stored frame verifies.
     let frame_10 = found["query_frame_id"].as_u64().unwrap();
-    let r: Value = http
-        .post(format!("{base}/v1/sessions/desk/query"))
-        .json(&json!({ "frame_id": frame_10, "options": { "k": 1, "exclude_last_frames": 0 } }))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let r: Value = post_json(
+        &http,
+        format!("{base}/v1/sessions/desk/query"),
+        &json!({ "frame_id": frame_10, "options": { "k": 1, "exclude_last_frames": 0 } }),
+    )
+    .await;
     let m = &r["matches"][0];
     assert_eq!(m["frame_id"], found["match_frame_id"], "{r}");
     assert_eq!(m["verification"]["verified"], true, "{r}");
@@ -124,10 +125,7 @@ async fn a_job_with_default_options_finds_and_verifies_the_desk_loop_and_its_fra
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn confidence_is_one_number_over_both_apis_kept_loops_and_the_export_and_min_confidence_filters() {
     let dir = tempfile::tempdir().unwrap();
-    let server =
-        shipped_server(dir.path(), Calibration::Shipped(loopd::verify::confidence::SHIPPED.into())).await.unwrap();
-    let base = format!("http://{}", server.http_addr);
-    let http = reqwest::Client::new();
+    let (server, base, http) = shipped(dir.path()).await;
     let mut client = LoopdClient::connect(format!("http://{}", server.grpc_addr)).await.unwrap();
     client.create_session(pb::CreateSessionRequest { id: "c".into(), ..Default::default() }).await.unwrap();
     for i in 1..=10 {
@@ -146,15 +144,8 @@ async fn confidence_is_one_number_over_both_apis_kept_loops_and_the_export_and_m
     let c0 = grpc[0].confidence.expect("a calibrated confidence");
     assert!((0.0..=1.0).contains(&c0));
     assert!(grpc.iter().all(|m| m.confidence.unwrap() <= c0), "the verified loop is the most confident: {grpc:?}");
-    let h: Value = http
-        .post(format!("{base}/v1/sessions/c/query"))
-        .json(&json!({ "frame_id": 9, "options": { "k": 3 } }))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let h: Value =
+        post_json(&http, format!("{base}/v1/sessions/c/query"), &json!({ "frame_id": 9, "options": { "k": 3 } })).await;
     for (g, m) in grpc.iter().zip(h["matches"].as_array().unwrap()) {
         assert_eq!(m["frame_id"].as_u64(), Some(g.frame_id));
         assert_eq!(m["confidence"].as_f64().map(|c| c as f32), g.confidence, "{h}");

@@ -221,15 +221,12 @@ async fn http_sessions_frames_queries_and_errors() {
         http.post(url("/v1/sessions/desk/add_and_query")).multipart(form).send().await.unwrap().json().await.unwrap();
     assert_eq!(r["matches"][0]["frame_id"], first["frame_id"], "{r}");
     // Query by stored frame id, JSON body.
-    let q: serde_json::Value = http
-        .post(url("/v1/sessions/desk/query"))
-        .json(&serde_json::json!({ "frame_id": r["frame_id"], "options": { "k": 1 } }))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let q: serde_json::Value = post_json(
+        &http,
+        url("/v1/sessions/desk/query"),
+        &serde_json::json!({ "frame_id": r["frame_id"], "options": { "k": 1 } }),
+    )
+    .await;
     assert_eq!(q["matches"][0]["frame_id"], first["frame_id"]);
     // k at the limit by a stored frame: every other frame, not "k = 1001 exceeds the limit".
     let r = http

@@ -129,3 +129,12 @@ pub fn corridor_truth() -> std::collections::HashMap<usize, Vec<usize>> {
         })
         .collect()
 }
+
+/// POSTs `body` as JSON and reads the answer as JSON (any status: the caller asserts on it).
+pub async fn post_json(
+    http: &reqwest::Client,
+    url: impl reqwest::IntoUrl,
+    body: &serde_json::Value,
+) -> serde_json::Value {
+    http.post(url).json(body).send().await.expect("the server answers").json().await.expect("a JSON answer")
+}

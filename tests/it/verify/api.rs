@@ -98,28 +98,22 @@ async fn the_desk_loop_is_verified_and_eval_agrees_with_the_server() {
     // A descriptor query has no image to check with: it says so, and still ranks by cosine.
     let d: Value =
         http.post(url("/v1/embed")).body(image("slambook2-ch11/10.png")).send().await.unwrap().json().await.unwrap();
-    let r: Value = http
-        .post(url("/v1/sessions/desk/query"))
-        .json(&json!({ "descriptor": d["descriptor"], "options": { "k": 1 } }))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let r: Value = post_json(
+        &http,
+        url("/v1/sessions/desk/query"),
+        &json!({ "descriptor": d["descriptor"], "options": { "k": 1 } }),
+    )
+    .await;
     let v = &r["matches"][0]["verification"];
     assert_eq!(v["verified"], false);
     assert!(v["reason"].as_str().unwrap().contains("no image"), "{v}");
     // Switched off per query: no verification at all.
-    let r: Value = http
-        .post(url("/v1/sessions/desk/query"))
-        .json(&json!({ "descriptor": d["descriptor"], "options": { "k": 1, "verify": false } }))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let r: Value = post_json(
+        &http,
+        url("/v1/sessions/desk/query"),
+        &json!({ "descriptor": d["descriptor"], "options": { "k": 1, "verify": false } }),
+    )
+    .await;
     assert!(r["matches"][0].get("verification").is_none(), "{r}");
     server.shutdown().await.unwrap();
 }
