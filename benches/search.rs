@@ -7,9 +7,10 @@
 //!      LOOPD_BENCH_FAISS=0 to skip FAISS,
 //!      LOOPD_BENCH_SEARCH_DEVICE=cuda (or cuda:N, cpu) to add the libtorch device path's columns
 use indicatif::{ProgressBar, ProgressStyle};
-use loopd::store::index::SessionIndex;
-use loopd::store::query::LoopQuery;
-use loopd::store::{NewSession, Storage};
+use loopd::index::query::LoopQuery;
+use loopd::index::SessionIndex;
+use loopd::index::Storage;
+use loopd::store::NewSession;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 

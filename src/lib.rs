@@ -7,10 +7,13 @@
 //!
 //! - `cli/`: one file per subcommand; the top. `serve` wires the server, the rest are offline
 //!   tools or remote clients.
+//! - `client/`: the one client of the remote subcommands (export, ingest, tenant, eval
+//!   --server): address, key, CA, client certificate; HTTP and gRPC. Reads the wire types of
+//!   `api::wire` and `pb`, nothing else of the server.
 //! - `train/`: the paper's attention and fusion heads and learned whitening on real data; uses
 //!   `eval` for its validation.
 //! - `eval/`: `loopd eval` (recall at 100% precision, recall@1, AP, the confidence sweep, plots);
-//!   runs the same search and checks as the server (`store::index`, `verify::check`).
+//!   runs the same search and checks as the server (`index`, `verify::check`).
 //! - `api/`: the network service. `service.rs` is what both transports do, written once;
 //!   `http/` (axum: router, state, handlers) and `grpc/` (tonic) only translate, and neither
 //!   imports the other; `wire.rs` holds what both read alike; `tenancy.rs` scopes every call to
@@ -18,12 +21,16 @@
 //!   service); `kept.rs` and `loops.rs` the kept loop candidates; `server.rs` the wiring.
 //! - `engine/`: the inference engine, every frame's way to the one model thread.
 //! - `verify/`: local features, geometric and sequence checks, the one decision rule and the
-//!   calibrated confidence; reads `store`'s match and record types, never the reverse.
+//!   calibrated confidence; reads `index`'s matches and `store`'s records, never the reverse.
 //! - `auth/`: API keys, tenants, quotas and the admin key.
 //! - `export/`: a session's loop graph as files a SLAM back end reads.
 //! - `inspect/`: thumbnails, the similarity matrix and the loop inspector page.
-//! - `store/`: sessions on sled (or the PostgreSQL cluster), the in-memory search index
-//!   (`index.rs`, `kernels.rs`, `device.rs`, `query.rs`) and the kept loops.
+//! - `store/`: persistence: sessions on sled (or the PostgreSQL cluster's log, sled its cache),
+//!   their frames, features, thumbnails and kept loops; fills each session's index from its
+//!   records.
+//! - `index/`: search: a session's rows in memory, exact scores (host SIMD kernels or a libtorch
+//!   device), the query options and matches, the sequence trails and votes; imports no other
+//!   layer.
 //! - `model/`: the descriptor network, weights, preprocessing.
 //! - `bags/`: ROS 1 and rosbag2 bags to frames.
 //! - `files.rs`, `pb.rs`: image file listings; the generated gRPC types.
@@ -31,10 +38,12 @@ pub mod api;
 pub mod auth;
 pub mod bags;
 pub mod cli;
+pub mod client;
 pub mod engine;
 pub mod eval;
 pub mod export;
 pub mod files;
+pub mod index;
 pub mod inspect;
 pub mod model;
 pub mod pb;

@@ -1,7 +1,8 @@
 //! What the cluster benches (frame_log, cluster_nodes) write: 2,048-d f16 sessions, and unit rows
 //! that differ per frame (write and search costs do not depend on the values).
-use loopd::store::query::LoopQuery;
-use loopd::store::record::{SessionMeta, Storage};
+use loopd::index::query::LoopQuery;
+use loopd::index::Storage;
+use loopd::store::record::SessionMeta;
 use loopd::store::{NewFrame, NewSession};
 
 pub const DIM: usize = 2048;
@@ -10,7 +11,7 @@ pub const WRITERS: usize = 16;
 
 pub fn descriptor(i: usize) -> Vec<f32> {
     let mut d: Vec<f32> = (0..DIM).map(|j| (((i * 31 + j * 7) % 97) as f32 + 1.0) / 97.0).collect();
-    loopd::store::normalize(&mut d).expect("non-zero");
+    loopd::index::normalize(&mut d).expect("non-zero");
     d
 }
 

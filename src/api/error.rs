@@ -68,6 +68,12 @@ impl From<EngineError> for ApiError {
     }
 }
 
+impl From<crate::index::query::InvalidQuery> for ApiError {
+    fn from(e: crate::index::query::InvalidQuery) -> Self {
+        ApiError::InvalidArgument(e.0)
+    }
+}
+
 impl From<StoreError> for ApiError {
     fn from(e: StoreError) -> Self {
         let msg = e.to_string();

@@ -3,11 +3,12 @@
 use super::error::ApiError;
 use super::kept::{loop_records, QueryFrame};
 use crate::engine::Engine;
+use crate::index::query::{LoopQuery, Pose, Scope};
+use crate::index::Storage;
 use crate::model::network::Variant;
 use crate::model::preprocess::ImageLimits;
-use crate::store::query::{LoopQuery, Pose, Scope};
 use crate::store::record::{Camera, FrameHeader};
-use crate::store::{NewFrame, NewSession, Session, SessionInfo, Storage, Store, MAX_CLIENT_FRAME_ID};
+use crate::store::{NewFrame, NewSession, Session, SessionInfo, Store, MAX_CLIENT_FRAME_ID};
 use crate::verify::confidence::Calibrator;
 use crate::verify::features::Features;
 use crate::verify::geometric::{Intrinsics, VerifyParams};
@@ -202,7 +203,7 @@ impl FrameInput {
     /// slot (the fuzz targets' entry).
     pub fn validate(&self, opts: &QueryOverrides) -> Result<(), ApiError> {
         self.check()?;
-        opts.apply(&LoopQuery::default()).validate().map_err(ApiError::InvalidArgument)
+        opts.apply(&LoopQuery::default()).validate().map_err(ApiError::from)
     }
 
     /// The stored frame, once its descriptor (and the image's features) are known.
@@ -302,7 +303,7 @@ impl LoopService {
 
     pub async fn create_session(&self, req: CreateSession) -> Result<SessionInfo, ApiError> {
         let defaults = req.default_query.apply(&LoopQuery::default());
-        defaults.validate().map_err(ApiError::InvalidArgument)?;
+        defaults.validate().map_err(ApiError::from)?;
         if let Some(c) = &req.camera {
             intrinsics(c).validate().map_err(|e| ApiError::InvalidArgument(format!("camera: {e}")))?;
         }
@@ -458,6 +459,10 @@ impl LoopService {
         history: History,
         q: &LoopQuery,
     ) -> Result<(Vec<LoopMatch>, Vec<u64>), ApiError> {
+        // Unit length once, here: the search, the sequence votes and the query's own place in its
+        // trail all read this one vector.
+        let mut descriptor = descriptor;
+        crate::index::normalize(&mut descriptor).map_err(crate::store::StoreError::from)?;
         let v = &q.verify;
         let wide = LoopQuery { k: verify::search_width(q), ..q.clone() };
         let query_descriptor = v.sequence.then(|| descriptor.clone());
@@ -481,9 +486,7 @@ impl LoopService {
                 History::Live(_) => None,
             };
             let have: Vec<u64> = matches.iter().map(|m| m.frame_id).collect();
-            let mut normalized = d.clone();
-            crate::store::normalize(&mut normalized)?;
-            matches.extend(s.voted(&normalized, q, stored, v.sequence_length.saturating_sub(1), &have));
+            matches.extend(s.voted(d, q, stored, v.sequence_length.saturating_sub(1), &have));
         }
         let checked = if v.geometric { v.candidates.min(matches.len()) } else { 0 };
         let query = v.geometric.then(|| match features {
@@ -551,7 +554,7 @@ impl LoopService {
             check_robot_id(r)?;
         }
         q.at_time = at_time;
-        q.validate().map_err(ApiError::InvalidArgument)?;
+        q.validate().map_err(ApiError::from)?;
         self.check_confidence(&s, &q)?;
         match target {
             QueryTarget::Frame(id) => {
@@ -587,7 +590,7 @@ impl LoopService {
         let mut q = options.apply(&s.meta.default_query);
         q.robot_id = Some(f.robot_id.clone());
         q.at_time = Some(t);
-        q.validate().map_err(ApiError::InvalidArgument)?;
+        q.validate().map_err(ApiError::from)?;
         self.check_confidence(&s, &q)?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
         let features = q.verify.geometric || self.keeps_features();
@@ -601,10 +604,9 @@ impl LoopService {
         };
         // The candidates answered are kept with the frame, in its flush.
         let robot = f.robot_id.clone();
-        let keep = |ids: &[u64]| match ids.first() {
-            Some(&id) => loop_records(QueryFrame { id, robot: &robot, time: t }, &matches),
-            None => Vec::new(),
-        };
+        // Made for the batch's first frame: the store gives each its frame id.
+        let keep =
+            loop_records(QueryFrame { id: 0, robot: &robot, time: t }, &matches).into_iter().map(|l| (0, l)).collect();
         let ids = self.store.add_frames_keeping(&s, vec![f.into_new_frame(t, prepared)], keep).await?;
         let id = ids.first().copied().ok_or_else(|| ApiError::Internal("no frame id returned".into()))?;
         // Its best matches by descriptor: the candidates it votes for in later sequence checks.

@@ -3,8 +3,9 @@
 //! reach the service through this.
 use super::error::ApiError;
 use super::inspect::FramePage;
-use super::jobs::{JobStatus, Jobs, SequenceRequest};
+use super::jobs::{Jobs, SequenceRequest};
 use super::service::{CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
+use super::wire::JobStatus;
 use crate::auth::quota::{InFlight, Refusal};
 use crate::auth::Caller;
 use crate::inspect::similarity::Similarity;

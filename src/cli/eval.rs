@@ -1,6 +1,6 @@
 use super::{ModelArgs, VariantArgs};
 use crate::eval::run::{run as run_eval, EvalSpec};
-use crate::store::query::VerifyOptions;
+use crate::index::query::VerifyOptions;
 use crate::verify::geometric::Intrinsics;
 use anyhow::Result;
 use clap::Args;
@@ -21,6 +21,13 @@ pub struct EvalArgs {
     pub server: Option<String>,
     #[arg(long)]
     pub session: Option<String>,
+    /// With --server: a file holding the tenant's key (else LOOPD_KEY; none on a server without
+    /// keys).
+    #[arg(long, env = "LOOPD_KEY_FILE")]
+    pub key_file: Option<PathBuf>,
+    /// With --server: its TLS (an https:// address needs --ca).
+    #[command(flatten)]
+    pub tls: crate::client::TlsArgs,
     /// A second traversal whose frames are matched against --sequence.
     #[arg(long)]
     pub query_sequence: Option<PathBuf>,
@@ -103,14 +110,11 @@ fn parse_intrinsics(s: &str) -> Result<Intrinsics, String> {
 pub fn run(a: EvalArgs) -> Result<ExitCode> {
     if let (Some(server), Some(session)) = (&a.server, &a.session) {
         let rt = tokio::runtime::Runtime::new()?;
-        let (frames, report, confidence) = rt.block_on(crate::eval::remote::evaluate_session(
-            server,
-            session,
-            &a.gt,
-            a.camera,
-            a.tolerance,
-            a.exclude,
-        ))?;
+        let key = crate::client::tenant_key(a.key_file.as_deref())?;
+        let (frames, report, confidence) = rt.block_on(async {
+            let mut client = crate::client::grpc(server, key, &a.tls).await?;
+            crate::eval::remote::evaluate_session(&mut client, session, &a.gt, a.camera, a.tolerance, a.exclude).await
+        })?;
         let mut out = serde_json::to_value(&report)?;
         for (k, v) in [
             ("server", serde_json::json!(server)),
@@ -135,8 +139,8 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         min_sequence_margin: a.min_sequence_margin,
     });
     if let Some(v) = &verify {
-        let q = crate::store::query::LoopQuery { verify: v.clone(), ..Default::default() };
-        q.validate().map_err(anyhow::Error::msg)?;
+        let q = crate::index::query::LoopQuery { verify: v.clone(), ..Default::default() };
+        q.validate()?;
     }
     let spec = EvalSpec {
         verify,

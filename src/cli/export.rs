@@ -1,6 +1,6 @@
 //! `loopd export`: a session's loop graph (frames.csv, loops.csv, graph.g2o, TUM trajectories)
 //! as a tar, from a running server's export route (the server holds the store).
-use super::remote::RemoteArgs;
+use crate::client::ServerArgs;
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -14,7 +14,7 @@ pub struct ExportArgs {
     #[arg(long, short, default_value = "-")]
     out: PathBuf,
     #[command(flatten)]
-    remote: RemoteArgs,
+    remote: ServerArgs,
     /// Odometry standard deviations in the graph (metres, radians).
     #[arg(long)]
     odometry_sigma_m: Option<f64>,

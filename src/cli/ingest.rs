@@ -1,9 +1,9 @@
 //! `loopd ingest BAG`: a ROS bag (MCAP file, rosbag2 folder, ROS 1 .bag) as an offline sequence
 //! job on a running server, which reads the bag (the same code as an HTTP bag upload); without
 //! --session, the bag's topics.
-use super::remote::{failed, Remote, RemoteArgs};
-use crate::api::jobs::{JobState, JobStatus, MAX_BAG_CHUNK_BYTES, MAX_JOB_FRAMES};
+use crate::api::wire::{JobState, JobStatus, MAX_BAG_CHUNK_BYTES, MAX_JOB_FRAMES};
 use crate::bags;
+use crate::client::{failed, Http, ServerArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use serde::Deserialize;
@@ -56,7 +56,7 @@ pub struct IngestArgs {
     #[arg(long)]
     json: bool,
     #[command(flatten)]
-    remote: RemoteArgs,
+    remote: ServerArgs,
 }
 
 #[derive(Deserialize)]
@@ -105,7 +105,7 @@ fn list_topics(files: &[PathBuf]) -> Result<()> {
 }
 
 /// Creates the session unless it exists; true when this call created it.
-fn ensure_session(remote: &Remote, id: &str, thumbnails: bool) -> Result<bool> {
+fn ensure_session(remote: &Http, id: &str, thumbnails: bool) -> Result<bool> {
     let create = remote.client.post(format!("{}/v1/sessions", remote.base));
     let r = remote.call(create.json(&serde_json::json!({ "id": id, "name": id, "thumbnails": thumbnails })))?;
     if r.status() == reqwest::StatusCode::CONFLICT {
@@ -118,7 +118,7 @@ fn ensure_session(remote: &Remote, id: &str, thumbnails: bool) -> Result<bool> {
 }
 
 /// Takes back a session this run created for an upload the server refused (nothing in it).
-fn remove_session(remote: &Remote, id: &str) {
+fn remove_session(remote: &Http, id: &str) {
     let delete = remote.client.delete(format!("{}/v1/sessions/{id}", remote.base));
     match remote.call(delete) {
         Ok(r) if r.status().is_success() => {}
@@ -127,7 +127,7 @@ fn remove_session(remote: &Remote, id: &str) {
     }
 }
 
-fn upload(remote: &Remote, a: &IngestArgs, session: &str, files: &[PathBuf]) -> Result<String> {
+fn upload(remote: &Http, a: &IngestArgs, session: &str, files: &[PathBuf]) -> Result<String> {
     let mut form = reqwest::blocking::multipart::Form::new()
         .text("every", a.every.to_string())
         .text("min_dt", a.min_dt.to_string());
@@ -157,7 +157,7 @@ fn upload(remote: &Remote, a: &IngestArgs, session: &str, files: &[PathBuf]) -> 
     created["job_id"].as_str().map(String::from).context("the server's answer has no job id")
 }
 
-fn wait(remote: &Remote, job: &str) -> Result<JobStatus> {
+fn wait(remote: &Http, job: &str) -> Result<JobStatus> {
     let bar = indicatif::ProgressBar::new(0);
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg} {bar:40} {pos}/{len} frames, {elapsed}")

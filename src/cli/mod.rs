@@ -6,7 +6,6 @@ mod eval;
 mod export;
 mod images;
 mod ingest;
-mod remote;
 mod serve;
 mod tenant;
 mod train;
@@ -158,5 +157,35 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Tenant(a) => tenant::run(a),
         Command::Export(a) => export::run(a),
         Command::Ingest(a) => ingest::run(a),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Cli;
+    use clap::{CommandFactory, Parser};
+
+    /// clap checks its definitions only in debug builds: every subcommand's arguments (the
+    /// client's TLS and key arguments flattened into several) are checked here in release too.
+    #[test]
+    fn every_subcommand_s_arguments_are_well_formed() {
+        Cli::command().debug_assert();
+        let eval = Cli::try_parse_from([
+            "loopd",
+            "eval",
+            "--server",
+            "https://localhost:50051",
+            "--session",
+            "s",
+            "--gt",
+            "gt.csv",
+            "--ca",
+            "ca.pem",
+            "--key-file",
+            "key",
+        ]);
+        assert!(eval.is_ok(), "{:?}", eval.err());
+        let half = Cli::try_parse_from(["loopd", "export", "s", "--client-cert", "c.pem"]);
+        assert!(half.is_err(), "a client certificate without its key must be refused");
     }
 }

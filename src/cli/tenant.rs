@@ -1,5 +1,6 @@
 //! `loopd tenant create|list|revoke`: tenant keys, through a running server's admin routes (the
 //! server holds the store; the admin key comes from LOOPD_ADMIN_KEY or --admin-key-file).
+use crate::client::{Http, TlsArgs};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
@@ -15,15 +16,8 @@ pub struct TenantArgs {
     /// A file holding the admin key (else LOOPD_ADMIN_KEY).
     #[arg(long, env = "LOOPD_ADMIN_KEY_FILE", global = true)]
     admin_key_file: Option<PathBuf>,
-    /// The CA (PEM) that signed the server's certificate, for an https:// server.
-    #[arg(long, env = "LOOPD_CA", global = true)]
-    ca: Option<PathBuf>,
-    /// A client certificate chain (PEM), for a server that requires one (--tls-client-ca).
-    #[arg(long, env = "LOOPD_CLIENT_CERT", global = true, requires = "client_key")]
-    client_cert: Option<PathBuf>,
-    /// The client certificate's private key (PEM).
-    #[arg(long, env = "LOOPD_CLIENT_KEY", global = true, requires = "client_cert")]
-    client_key: Option<PathBuf>,
+    #[command(flatten)]
+    tls: TlsArgs,
 }
 
 #[derive(Subcommand)]
@@ -58,19 +52,8 @@ fn admin_key(file: &Option<PathBuf>) -> Result<String> {
 
 pub fn run(a: TenantArgs) -> Result<ExitCode> {
     let key = admin_key(&a.admin_key_file)?;
-    let mut client = reqwest::blocking::Client::builder().use_rustls_tls();
-    if let Some(ca) = &a.ca {
-        let pem = std::fs::read(ca).with_context(|| format!("reading {}", ca.display()))?;
-        client = client.add_root_certificate(reqwest::Certificate::from_pem(&pem).context("the CA file")?);
-    }
-    if let (Some(cert), Some(key)) = (&a.client_cert, &a.client_key) {
-        let mut pem = std::fs::read(cert).with_context(|| format!("reading {}", cert.display()))?;
-        pem.push(b'\n');
-        pem.extend(std::fs::read(key).with_context(|| format!("reading {}", key.display()))?);
-        client = client.identity(reqwest::Identity::from_pem(&pem).context("the client certificate and key")?);
-    }
-    let client = client.build().context("building the HTTP client")?;
-    let base = a.server.trim_end_matches('/');
+    let http = Http::new(&a.server, Some(key), &a.tls)?;
+    let (client, base) = (&http.client, &http.base);
     let request = match &a.command {
         TenantCommand::Create { name, max_sessions, max_frames, rate, max_in_flight } => {
             let limits = serde_json::json!({
@@ -81,12 +64,7 @@ pub fn run(a: TenantArgs) -> Result<ExitCode> {
         TenantCommand::List => client.get(format!("{base}/v1/tenants")),
         TenantCommand::Revoke { name_or_key_id } => client.delete(format!("{base}/v1/tenants/{name_or_key_id}")),
     };
-    let r = request.bearer_auth(key).send().with_context(|| format!("reaching {base}"))?;
-    let status = r.status();
-    let body: serde_json::Value = r.json().context("reading the server's answer")?;
-    if !status.is_success() {
-        anyhow::bail!("{status}: {}", body["error"].as_str().unwrap_or("(no message)"));
-    }
+    let body: serde_json::Value = http.send(request)?.json().context("reading the server's answer")?;
     match &a.command {
         TenantCommand::Create { .. } => {
             println!("tenant {} key id {}", body["name"].as_str().unwrap_or(""), body["key_id"].as_str().unwrap_or(""));

@@ -1,25 +1,24 @@
-//! `loopd eval --server`: the protocol run against a live server's session over gRPC, so the
-//! numbers come from the very engine and index that serve the robots.
+//! `loopd eval --server`: the protocol run against a live server's session over gRPC (the one
+//! client of `crate::client`, with the tenant's key and TLS), so the numbers come from the very
+//! engine and index that serve the robots.
 //!
 //! The session's frames must be one sequence with frame ids 0..n-1 in order (what the offline
 //! sequence job and a single robot with server-assigned ids produce); ground-truth indices refer
 //! to that order.
 use super::gt::GroundTruth;
 use super::metrics::{evaluate, evaluate_confidence, ConfidenceReport, QueryResult, Report};
+use crate::client::Grpc;
 use crate::pb;
 use anyhow::{bail, Context, Result};
 
 pub async fn evaluate_session(
-    server: &str,
+    client: &mut Grpc,
     session: &str,
     gt: &str,
     camera: Option<usize>,
     tolerance: usize,
     exclude: usize,
 ) -> Result<(usize, Report, Option<ConfidenceReport>)> {
-    let url = if server.starts_with("http") { server.to_string() } else { format!("http://{server}") };
-    let mut client =
-        pb::loopd_client::LoopdClient::connect(url.clone()).await.with_context(|| format!("connecting to {url}"))?;
     let info = client.get_session(pb::GetSessionRequest { id: session.into() }).await?.into_inner();
     let n = info.frames as usize;
     if n == 0 {

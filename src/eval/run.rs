@@ -4,12 +4,12 @@ use super::gt::GroundTruth;
 use super::metrics::{evaluate, evaluate_confidence, ConfidenceReport, QueryResult, Report};
 use super::plots;
 use crate::engine::{Engine, EngineConfig};
+use crate::index::query::{LoopQuery, VerifyOptions};
+use crate::index::SessionIndex;
+use crate::index::Storage;
 use crate::model::network::Variant;
 use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
-use crate::store::index::SessionIndex;
-use crate::store::query::{LoopQuery, VerifyOptions};
-use crate::store::Storage;
 use crate::verify::{
     self,
     confidence::{Calibration, Calibrator, Sample},
@@ -389,7 +389,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         let refs: Vec<f32> = ref_desc.iter().flatten().copied().collect();
         let mut scores = vec![0f32; qd.len() * ref_desc.len()];
         for (q, row) in qd.iter().zip(scores.chunks_exact_mut(ref_desc.len())) {
-            crate::store::kernels::dots_f32(q, &refs, row);
+            crate::index::kernels::dots_f32(q, &refs, row);
         }
         let truth: Vec<(usize, usize)> = gt.loops.iter().flat_map(|(&q, rs)| rs.iter().map(move |&r| (q, r))).collect();
         plots::similarity(&dir.join("similarity.png"), &scores, qd.len(), ref_desc.len(), &truth)?;

@@ -2,8 +2,8 @@
 //! and g2o read it). Vertices are posed frames; odometry edges join a robot's consecutive posed
 //! frames; loop edges are loops a client accepted with a relative pose.
 use super::{Noise, Snapshot};
+use crate::index::query::Pose;
 use crate::store::loops::Transform;
-use crate::store::query::Pose;
 use nalgebra::{Isometry3, Matrix6, Quaternion, Translation3, UnitQuaternion};
 use std::collections::{BTreeMap, HashMap};
 use std::fmt::Write;

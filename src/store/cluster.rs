@@ -6,17 +6,20 @@
 //! acknowledged once its commit reached a synchronous standby, then applied here.
 //!
 //! Tenants, kept loops (with verdicts) and sequence jobs' records are in the log as well.
-use super::loops::LoopRecord;
+use super::cluster_jobs::LoggedJob;
+use super::loops::{KeptLoops, LoopRecord, Verdict};
+use super::operations::Operations;
+use super::owners::{owners, ClusterView, HeldSession, Membership};
 use super::pg::{Appended, Head, PgLog, Replication};
 use super::record::{encode_frame, frame_key, FrameHeader, SessionMeta};
-use super::{NewFrame, SearchConfig, Session, SessionInfo, Store, StoreError};
-use std::path::Path;
+use super::{NewFrame, Session, SessionInfo, Store, StoreError};
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 
 /// Frames one read of a session's tail brings at most.
 const TAIL_PAGE: i64 = 512;
 
+/// The cluster backend: the replicated log, its last probe and this node's membership.
 pub(super) struct Cluster {
     pub(super) log: PgLog,
     /// Why the log did not take writes at the last probe (`Store::probe_log`); None when it did.
@@ -43,125 +46,22 @@ pub async fn tracking_staleness<F: std::future::Future>(request: F) -> (F::Outpu
         .await
 }
 
-impl Store {
-    /// Opens `dir` as this node's cache and connects to the cluster's log (`url`: a multi-host
-    /// PostgreSQL URL with `target_session_attrs=read-write`), refusing a primary whose commits
-    /// do not wait for a synchronous standby unless `replication` says otherwise.
-    pub async fn open_cluster(
-        dir: &Path,
+impl Cluster {
+    /// Connects to the cluster's log (`url`: a multi-host PostgreSQL URL with
+    /// `target_session_attrs=read-write`), refusing a primary whose commits do not wait for a
+    /// synchronous standby unless `replication` says otherwise; with the log's tenants.
+    pub(super) async fn connect(
         url: &str,
         connections: usize,
         replication: Replication,
-        search: SearchConfig,
-    ) -> Result<Self, StoreError> {
+    ) -> Result<(Self, Vec<(String, Vec<u8>)>), StoreError> {
         let log = PgLog::connect(url, connections, replication).await?;
         let tenants = log.tenants().await?;
-        let dir = dir.to_path_buf();
-        // sled opens and drops its cache with blocking I/O.
-        let store = tokio::task::spawn_blocking(move || {
-            Self::open_dir(
-                &dir,
-                search,
-                Some(Cluster { log, not_writable: Default::default(), members: Default::default() }),
-            )
-        })
-        .await
-        .map_err(|e| StoreError::Storage(format!("opening the cache failed: {e}")))??;
-        // The log's tenants replace this node's copy, which `Auth` reads at start.
-        store.replace_tenants(&tenants)?;
-        Ok(store)
+        Ok((Cluster { log, not_writable: Default::default(), members: Default::default() }, tenants))
     }
+}
 
-    /// Asks the log whether it takes writes now, waiting at most `within`; readiness reports the
-    /// answer until the next probe (the balancer then sends calls to nodes that can write).
-    pub async fn probe_log(&self, within: std::time::Duration) {
-        let Some(c) = &self.cluster else { return };
-        let answer = match tokio::time::timeout(within, c.log.probe()).await {
-            Ok(Ok(())) => None,
-            Ok(Err(e)) => Some(e.to_string()),
-            Err(_) => Some(format!("the cluster database did not answer within {within:?}")),
-        };
-        *c.not_writable.lock() = answer;
-    }
-
-    /// Why this node should not take calls now: its storage refuses writes, or (in a cluster)
-    /// the log did not take writes at the last probe.
-    pub fn readiness(&self) -> Option<String> {
-        if let Some(e) = self.failure() {
-            return Some(format!("storage failed ({e})"));
-        }
-        self.cluster.as_ref()?.not_writable.lock().clone()
-    }
-
-    /// Keeps a tenant's record: in a cluster, in the log (then here); else durable in sled.
-    pub async fn put_tenant_durable(&self, name: &str, record: &[u8]) -> Result<(), StoreError> {
-        if let Some(c) = &self.cluster {
-            c.log.put_tenant(name, record).await?;
-        }
-        self.put_tenant(name, record)?;
-        self.durable_records().await
-    }
-
-    /// Every tenant's record as of now: in a cluster, the log's (kept here too).
-    pub async fn tenants_fresh(&self) -> Result<Vec<(String, Vec<u8>)>, StoreError> {
-        let Some(c) = &self.cluster else { return self.tenants() };
-        let tenants = c.log.tenants().await?;
-        self.replace_tenants(&tenants)?;
-        Ok(tenants)
-    }
-
-    /// The session as of now. In a cluster: loaded on first use, brought up to the log's version
-    /// (read-after-ack across nodes), and forgotten here once deleted through another node.
-    pub async fn fresh(&self, id: &str) -> Result<Arc<Session>, StoreError> {
-        let Some(c) = &self.cluster else { return self.session(id) };
-        let head = match c.log.head(id).await {
-            Err(StoreError::SessionNotFound(_)) => {
-                self.remove_local(id)?;
-                return Err(StoreError::SessionNotFound(id.into()));
-            }
-            // No writable primary: answer from what this node holds (it may lack the frames
-            // acknowledged last); writes fail on their own.
-            Err(StoreError::Unavailable(why)) => {
-                let held = self.session(id).map_err(|_| StoreError::Unavailable(why.clone()))?;
-                tracing::warn!(session = id, error = %why, "cluster log unavailable: answering from this node's index");
-                let _ = STALE.try_with(|s| s.set(true));
-                return Ok(held);
-            }
-            head => head?,
-        };
-        let version = head.version;
-        let s = self.cached(c, head)?;
-        Self::touch(&s);
-        self.catch_up(c, &s, version).await?;
-        Ok(s)
-    }
-
-    /// Every session as of now (see [`Store::fresh`]); with sled, [`Store::list`].
-    pub async fn list_fresh(&self) -> Result<Vec<SessionInfo>, StoreError> {
-        let Some(c) = &self.cluster else { return Ok(self.list()) };
-        let heads = c.log.heads().await?;
-        self.drop_deleted(&heads)?;
-        for head in heads {
-            let version = head.version;
-            let s = self.cached(c, head)?;
-            match self.catch_up(c, &s, version).await {
-                // Deleted since the listing was read.
-                Err(StoreError::SessionNotFound(_)) => {}
-                r => r?,
-            }
-        }
-        Ok(self.list())
-    }
-
-    /// Every session's id and frame count: in a cluster the log's, sessions this node has not
-    /// loaded included (a tenant's frame limit counts them all); with sled, this node's.
-    pub async fn frame_counts(&self) -> Result<Vec<(String, u64)>, StoreError> {
-        match &self.cluster {
-            Some(c) => c.log.frame_counts().await,
-            None => Ok(self.list().into_iter().map(|s| (s.meta.id, s.frames as u64)).collect()),
-        }
-    }
-
+impl Store {
     /// Forgets the sessions held here that the log's `heads` lack (deleted through another node).
     pub(super) fn drop_deleted(&self, heads: &[Head]) -> Result<(), StoreError> {
         let gone: Vec<String> = {
@@ -173,64 +73,265 @@ impl Store {
         }
         Ok(())
     }
+}
 
-    /// In a cluster, this node's copy of a session's kept loops becomes the log's (before a
-    /// listing or an export); nothing to do with sled.
-    pub async fn fresh_loops(&self, id: &str) -> Result<(), StoreError> {
-        let Some(c) = &self.cluster else { return Ok(()) };
-        let s = self.session(id)?;
-        match c.log.loops(&s.meta.id, s.tbl).await {
-            Ok(loops) => self.note(s.replace_loops(&loops)),
+/// Marks the request being answered as stale (see [`tracking_staleness`]).
+fn mark_stale() {
+    let _ = STALE.try_with(|s| s.set(true));
+}
+
+impl Operations for Cluster {
+    fn sled_is_cache(&self) -> bool {
+        true
+    }
+
+    async fn create_session(&self, store: &Store, meta: SessionMeta) -> Result<SessionMeta, StoreError> {
+        let tbl = self.log.create_session(&meta).await?;
+        self.cached(store, Head { meta: meta.clone(), tbl, version: 0 })?;
+        Ok(meta)
+    }
+
+    async fn delete_session(&self, store: &Store, id: &str) -> Result<(), StoreError> {
+        let deleted = self.log.delete_session(id).await;
+        if matches!(deleted, Ok(()) | Err(StoreError::SessionNotFound(_))) {
+            store.remove_local(id)?;
+        }
+        deleted
+    }
+
+    /// Appends to the log (acknowledged once on a synchronous standby, the loops in the same
+    /// transaction), then applies here.
+    async fn add_frames(
+        &self,
+        store: &Store,
+        s: &Arc<Session>,
+        frames: Vec<NewFrame>,
+        loops: KeptLoops,
+    ) -> Result<Vec<u64>, StoreError> {
+        let appended = self.log.append_keeping(&s.meta, &frames, loops).await?;
+        // Acknowledged from here on: a failure below leaves the frames to the next catch-up.
+        if let Err(e) = self.apply_own(store, s, &frames, &appended).await {
+            tracing::warn!(session = %s.meta.id, error = %e, "frames stored in the cluster, not yet applied here");
+        }
+        Ok(appended.ids)
+    }
+
+    async fn keep_loops(&self, _: &Store, s: &Arc<Session>, loops: Vec<LoopRecord>) -> Result<(), StoreError> {
+        self.log.keep_loops(s.tbl, &loops).await
+    }
+
+    async fn set_verdict(
+        &self,
+        _: &Store,
+        s: &Arc<Session>,
+        query: u64,
+        matched: u64,
+        verdict: Verdict,
+    ) -> Result<LoopRecord, StoreError> {
+        self.log.set_verdict((&s.meta.id, s.tbl), query, matched, &verdict).await
+    }
+
+    /// Loaded on first use, brought up to the log's version (read-after-ack across nodes), and
+    /// forgotten here once deleted through another node.
+    async fn fresh(&self, store: &Store, id: &str) -> Result<Arc<Session>, StoreError> {
+        let head = match self.log.head(id).await {
+            Err(StoreError::SessionNotFound(_)) => {
+                store.remove_local(id)?;
+                return Err(StoreError::SessionNotFound(id.into()));
+            }
+            // No writable primary: answer from what this node holds (it may lack the frames
+            // acknowledged last); writes fail on their own.
+            Err(StoreError::Unavailable(why)) => {
+                let held = store.session(id).map_err(|_| StoreError::Unavailable(why.clone()))?;
+                tracing::warn!(session = id, error = %why, "cluster log unavailable: answering from this node's index");
+                mark_stale();
+                return Ok(held);
+            }
+            head => head?,
+        };
+        let version = head.version;
+        let s = self.cached(store, head)?;
+        Store::touch(&s);
+        self.catch_up(store, &s, version).await?;
+        Ok(s)
+    }
+
+    async fn list_fresh(&self, store: &Store) -> Result<Vec<SessionInfo>, StoreError> {
+        let heads = self.log.heads().await?;
+        store.drop_deleted(&heads)?;
+        for head in heads {
+            let version = head.version;
+            let s = self.cached(store, head)?;
+            match self.catch_up(store, &s, version).await {
+                // Deleted since the listing was read.
+                Err(StoreError::SessionNotFound(_)) => {}
+                r => r?,
+            }
+        }
+        Ok(store.list())
+    }
+
+    /// The log's counts: sessions this node has not loaded included (a tenant's frame limit
+    /// counts them all).
+    async fn frame_counts(&self, _: &Store) -> Result<Vec<(String, u64)>, StoreError> {
+        self.log.frame_counts().await
+    }
+
+    /// This node's copy of a session's kept loops becomes the log's (before a listing or an
+    /// export).
+    async fn fresh_loops(&self, store: &Store, id: &str) -> Result<(), StoreError> {
+        let s = store.session(id)?;
+        match self.log.loops(&s.meta.id, s.tbl).await {
+            Ok(loops) => store.note(s.replace_loops(&loops)),
             // No writable primary: the copy held here answers, flagged stale.
             Err(StoreError::Unavailable(why)) => {
                 tracing::warn!(session = id, error = %why, "cluster log unavailable: listing this node's copy of the loops");
-                let _ = STALE.try_with(|s| s.set(true));
+                mark_stale();
                 Ok(())
             }
             Err(e) => Err(e),
         }
     }
 
-    pub(super) async fn create_in_cluster(&self, c: &Cluster, meta: SessionMeta) -> Result<SessionMeta, StoreError> {
-        let tbl = c.log.create_session(&meta).await?;
-        self.cached(c, Head { meta: meta.clone(), tbl, version: 0 })?;
-        Ok(meta)
+    async fn put_tenant(&self, name: &str, record: &[u8]) -> Result<(), StoreError> {
+        self.log.put_tenant(name, record).await
     }
 
-    pub(super) async fn delete_in_cluster(&self, c: &Cluster, id: &str) -> Result<(), StoreError> {
-        let deleted = c.log.delete_session(id).await;
-        if matches!(deleted, Ok(()) | Err(StoreError::SessionNotFound(_))) {
-            self.remove_local(id)?;
-        }
-        deleted
+    async fn tenants_fresh(&self, store: &Store) -> Result<Vec<(String, Vec<u8>)>, StoreError> {
+        let tenants = self.log.tenants().await?;
+        store.replace_tenants(&tenants)?;
+        Ok(tenants)
     }
 
-    /// Appends to the log (acknowledged once on a synchronous standby), then applies here. The
-    /// loops answered for the frames are kept on this node only.
-    pub(super) async fn add_in_cluster(
-        &self,
-        c: &Cluster,
-        s: &Arc<Session>,
-        frames: Vec<NewFrame>,
-        loops: impl FnOnce(&[u64]) -> Vec<LoopRecord>,
-    ) -> Result<Vec<u64>, StoreError> {
-        // The loops are made for the frames' positions (their ids are assigned in the log's
-        // transaction, which keeps them with the frames).
-        let positions: Vec<u64> = (0..frames.len() as u64).collect();
-        let keep = loops(&positions).into_iter().map(|l| (l.query_frame as usize, l)).collect();
-        let appended = c.log.append_keeping(&s.meta, &frames, keep).await?;
-        // Acknowledged from here on: a failure below leaves the frames to the next catch-up.
-        if let Err(e) = self.apply_own(c, s, &frames, &appended).await {
-            tracing::warn!(session = %s.meta.id, error = %e, "frames stored in the cluster, not yet applied here");
+    async fn job_number(&self) -> Result<Option<u64>, StoreError> {
+        self.log.next_job_number().await.map(Some)
+    }
+
+    /// In the log under this node's name (a new job there drops the oldest finished beyond
+    /// `kept`).
+    async fn keep_job(&self, _: &Store, id: &str, n: u64, record: &[u8], kept: usize) -> Result<(), StoreError> {
+        self.log.put_job(id, n, &self.node_name(), record, kept).await
+    }
+
+    async fn logged_job(&self, id: &str) -> Result<Option<LoggedJob>, StoreError> {
+        self.logged(id).await
+    }
+
+    async fn interrupt_logged_jobs(&self) {
+        match self.log.interrupt_jobs(&self.node_name()).await {
+            Ok(0) => {}
+            Ok(n) => tracing::warn!(jobs = n, "jobs interrupted by this node's restart"),
+            Err(e) => tracing::warn!(error = %e, "jobs of this node's earlier run not marked interrupted"),
         }
-        Ok(appended.ids)
+    }
+
+    fn not_writable(&self) -> Option<String> {
+        self.not_writable.lock().clone()
+    }
+
+    /// Readiness reports the answer until the next probe (the balancer then sends calls to
+    /// nodes that can write).
+    async fn probe(&self, within: std::time::Duration) {
+        let answer = match tokio::time::timeout(within, self.log.probe()).await {
+            Ok(Ok(())) => None,
+            Ok(Err(e)) => Some(e.to_string()),
+            Err(_) => Some(format!("the cluster database did not answer within {within:?}")),
+        };
+        *self.not_writable.lock() = answer;
+    }
+
+    fn join_members(&self, me: Membership) {
+        self.members.join(me);
+    }
+
+    async fn follow_members(&self, store: &Store) -> Result<(), StoreError> {
+        self.follow(store).await
+    }
+
+    fn cluster_view(&self, store: &Store) -> Option<ClusterView> {
+        self.view(store)
+    }
+
+    async fn leave_members(&self) {
+        let Some(me) = self.members.me() else { return };
+        if let Err(e) = self.log.leave(&me.node).await {
+            tracing::warn!(error = %e, "could not leave the cluster's members (they drop this node after the ttl)");
+        }
+    }
+}
+
+impl Cluster {
+    /// One round: heartbeat, read the live members, load and catch up the sessions this node
+    /// owns, and drop the ones it neither owns nor used within `evict_idle`.
+    pub(super) async fn follow(&self, store: &Store) -> Result<(), StoreError> {
+        let Some(me) = self.members.me() else { return Ok(()) };
+        self.log.heartbeat(&me.node).await?;
+        let live = self.log.members(me.ttl).await?;
+        self.members.set_live(live.clone());
+        let heads = self.log.heads().await?;
+        let owned = |id: &str| owners(id, &live, me.owners).contains(&me.node.as_str());
+        for head in heads.iter().filter(|h| owned(&h.meta.id)) {
+            let (id, version) = (head.meta.id.clone(), head.version);
+            let s = self.cached(store, Head { meta: head.meta.clone(), tbl: head.tbl, version })?;
+            match self.catch_up(store, &s, version).await {
+                Ok(()) | Err(StoreError::SessionNotFound(_)) => {}
+                Err(e) => tracing::warn!(session = %id, error = %e, "an owned session not brought up to date"),
+            }
+        }
+        store.drop_deleted(&heads)?;
+        if let Some(idle) = me.evict_idle {
+            let held: Vec<String> = store.sessions.read().keys().cloned().collect();
+            for id in held.iter().filter(|id| !owned(id)) {
+                store.evict_if_idle(id, idle)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// This node's view of the cluster.
+    pub(super) fn view(&self, store: &Store) -> Option<ClusterView> {
+        let me = self.members.me()?;
+        let members = self.members.live();
+        let mut held: Vec<HeldSession> = store
+            .sessions
+            .read()
+            .values()
+            .map(|s| HeldSession {
+                session: s.meta.id.clone(),
+                frames: s.index.read().len(),
+                owner: owners(&s.meta.id, &members, me.owners).contains(&me.node.as_str()),
+            })
+            .collect();
+        held.sort_by(|a, b| a.session.cmp(&b.session));
+        Some(ClusterView { node: me.node, owners: me.owners, members, held })
+    }
+
+    /// Job `id` as the log holds it, and whether its runner may still be running it.
+    pub(super) async fn logged(&self, id: &str) -> Result<Option<LoggedJob>, StoreError> {
+        let me = self.members.me();
+        // A runner rewrites a running job's record every few seconds: one written within the
+        // member ttl (and twice the rewrite period) is alive even if a late heartbeat dropped
+        // its node from this node's view for a round. "Interrupted" is final; it must not flap.
+        let ttl = me.as_ref().map_or(std::time::Duration::from_secs(5), |m| m.ttl);
+        let Some(job) = self.log.job(id, ttl.max(super::cluster_jobs::JOB_REWRITE * 2)).await? else { return Ok(None) };
+        let live = self.members.live();
+        let predecessor = me.is_some_and(|m| m.node == job.node);
+        // Before the first members round the list is empty: the runner is not known to be gone.
+        let member = live.is_empty() || live.contains(&job.node);
+        let runner_alive = !predecessor && (member || job.recent);
+        Ok(Some(LoggedJob { record: job.record, runner_alive }))
+    }
+
+    /// This node's name among the members (empty before it joined).
+    fn node_name(&self) -> String {
+        self.members.me().map(|m| m.node).unwrap_or_default()
     }
 
     /// Applies a batch this node appended: from memory when it follows what is applied here,
     /// else by reading the log's tail (which holds it).
     async fn apply_own(
         &self,
-        c: &Cluster,
+        store: &Store,
         s: &Arc<Session>,
         frames: &[NewFrame],
         appended: &Appended,
@@ -242,27 +343,27 @@ impl Store {
                 let header = f.header();
                 let record = encode_frame(&header, &f.descriptor, s.meta.storage);
                 let extras = (f.features.as_deref(), f.thumbnail.as_deref());
-                self.note(s.apply(id, &record, &header, &f.descriptor, extras))?;
+                store.note(s.apply(id, &record, &header, &f.descriptor, extras))?;
             }
             *applied = appended.version;
             return Ok(());
         }
         drop(applied);
-        self.catch_up(c, s, appended.version).await
+        self.catch_up(store, s, appended.version).await
     }
 
     /// Applies the log's frames after what this node holds, in `seq` order, until `version`.
-    pub(super) async fn catch_up(&self, c: &Cluster, s: &Arc<Session>, version: i64) -> Result<(), StoreError> {
+    pub(super) async fn catch_up(&self, store: &Store, s: &Arc<Session>, version: i64) -> Result<(), StoreError> {
         let mut applied = s.applied.lock().await;
         if *applied >= version {
             return Ok(());
         }
         // Pages keep a cold load's memory bounded (features can be tens of KB a frame).
         while *applied < version {
-            let frames = match c.log.tail(&s.meta.id, s.tbl, *applied, TAIL_PAGE).await {
+            let frames = match self.log.tail(&s.meta.id, s.tbl, *applied, TAIL_PAGE).await {
                 Err(StoreError::SessionNotFound(id)) => {
                     drop(applied);
-                    self.remove_local(&id)?;
+                    store.remove_local(&id)?;
                     return Err(StoreError::SessionNotFound(id));
                 }
                 frames => frames?,
@@ -272,7 +373,7 @@ impl Store {
             }
             for f in frames {
                 let extras = (f.features.as_deref(), f.thumbnail.as_deref());
-                self.note(s.apply(f.frame_id, &f.record, &f.header, &f.descriptor, extras))?;
+                store.note(s.apply(f.frame_id, &f.record, &f.header, &f.descriptor, extras))?;
                 *applied = f.seq;
             }
         }
@@ -282,28 +383,28 @@ impl Store {
     /// The session held here for the log's `head`: the one already cached, or a new, empty one
     /// in place of a stale one (deleted and created again through another node, or read from a
     /// primary that has since been replaced: it may hold frames the new one lacks).
-    pub(super) fn cached(&self, c: &Cluster, head: Head) -> Result<Arc<Session>, StoreError> {
-        let epoch = c.log.epoch();
-        let current = |store: &Self| {
+    pub(super) fn cached(&self, store: &Store, head: Head) -> Result<Arc<Session>, StoreError> {
+        let epoch = self.log.epoch();
+        let current = |store: &Store| {
             let held = store.sessions.read().get(&head.meta.id).cloned();
             held.filter(|s| s.tbl == head.tbl && s.epoch == epoch)
         };
-        if let Some(s) = current(self) {
+        if let Some(s) = current(store) {
             return Ok(s);
         }
-        let _admin = self.admin.lock();
+        let _admin = store.admin.lock();
         // Another request may have loaded it meanwhile.
-        if let Some(s) = current(self) {
+        if let Some(s) = current(store) {
             return Ok(s);
         }
-        self.remove_locked(&head.meta.id)?;
-        let disk = self.disk()?;
-        let mut session = Session::load(&disk.db, head.meta.clone(), self.search)?;
+        store.remove_locked(&head.meta.id)?;
+        let disk = store.disk()?;
+        let mut session = Session::load(&disk.db, head.meta.clone(), store.search)?;
         (session.tbl, session.epoch) = (head.tbl, epoch);
         let meta = serde_json::to_vec(&head.meta).map_err(|e| StoreError::Storage(e.to_string()))?;
-        self.note(disk.sessions.insert(head.meta.id.as_bytes(), meta))?;
+        store.note(disk.sessions.insert(head.meta.id.as_bytes(), meta))?;
         let s = Arc::new(session);
-        self.sessions.write().insert(head.meta.id.clone(), s.clone());
+        store.sessions.write().insert(head.meta.id.clone(), s.clone());
         Ok(s)
     }
 }

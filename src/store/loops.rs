@@ -4,7 +4,6 @@
 //! order; a pair answered again is updated, its verdict kept.
 use super::{Session, Store, StoreError};
 use serde::{Deserialize, Serialize};
-use std::sync::Arc;
 
 /// Most loops one listing returns.
 pub const MAX_LOOPS_PER_PAGE: usize = 1000;
@@ -113,62 +112,55 @@ fn decode(v: &[u8]) -> Result<LoopRecord, StoreError> {
     serde_json::from_slice(v).map_err(|e| StoreError::Storage(format!("bad loop record: {e}")))
 }
 
+/// The loops answered for a batch of frames being added, each with the position of its query
+/// frame in the batch: the store sets its `query_frame` to that frame's id once ids are given
+/// (by sled here, in the log's transaction in a cluster), so both backends take the same shape.
+pub type KeptLoops = Vec<(usize, LoopRecord)>;
+
+/// `loops` with their query frame's id from `ids` (the batch's ids, in order).
+pub(super) fn with_ids(loops: KeptLoops, ids: &[u64]) -> Vec<LoopRecord> {
+    loops
+        .into_iter()
+        .filter_map(|(i, mut l)| {
+            l.query_frame = *ids.get(i)?;
+            Some(l)
+        })
+        .collect()
+}
+
 impl Store {
-    /// Keeps the candidates answered for a stored frame; durable when this returns.
-    pub async fn keep_loops(&self, s: &Arc<Session>, loops: Vec<LoopRecord>) -> Result<(), StoreError> {
-        if loops.is_empty() {
-            return Ok(());
-        }
-        if let Some(c) = &self.cluster {
-            return c.log.keep_loops(s.tbl, &loops).await;
-        }
-        self.health.writable()?;
-        {
-            let trees = s.trees()?;
-            for mut l in loops {
-                let key = loop_key(l.query_frame, l.match_frame);
-                if let Some(old) = self.note(trees.loops.get(key))? {
-                    l.verdict = decode(&old).ok().and_then(|o| o.verdict);
-                }
-                let value = serde_json::to_vec(&l).map_err(|e| StoreError::Storage(e.to_string()))?;
-                self.note(trees.loops.insert(key, value))?;
+    /// This node's copy of the loops updated (a pair answered again keeps its verdict); not
+    /// yet durable.
+    pub(super) fn keep_loops_here(&self, s: &Session, loops: Vec<LoopRecord>) -> Result<(), StoreError> {
+        let trees = s.trees()?;
+        for mut l in loops {
+            let key = loop_key(l.query_frame, l.match_frame);
+            if let Some(old) = self.note(trees.loops.get(key))? {
+                l.verdict = decode(&old).ok().and_then(|o| o.verdict);
             }
+            let value = serde_json::to_vec(&l).map_err(|e| StoreError::Storage(e.to_string()))?;
+            self.note(trees.loops.insert(key, value))?;
         }
-        self.durable().await
+        Ok(())
     }
 
-    /// Records a client's verdict on a kept loop; the loop as it now is, once durable.
-    pub async fn set_verdict(
+    /// The verdict on this node's copy of the loop; not yet durable.
+    pub(super) fn set_verdict_here(
         &self,
-        s: &Arc<Session>,
+        s: &Session,
         query: u64,
         matched: u64,
         verdict: Verdict,
     ) -> Result<LoopRecord, StoreError> {
-        if let Some(c) = &verdict.covariance {
-            if c.len() != 36 || c.iter().any(|v| !v.is_finite()) {
-                return Err(StoreError::InvalidArgument(
-                    "covariance must be 36 finite numbers (6x6, row-major)".into(),
-                ));
-            }
-        }
-        if let Some(c) = &self.cluster {
-            return c.log.set_verdict((&s.meta.id, s.tbl), query, matched, &verdict).await;
-        }
-        self.health.writable()?;
-        let record = {
-            let trees = s.trees()?;
-            let key = loop_key(query, matched);
-            let old = self.note(trees.loops.get(key))?.ok_or_else(|| {
-                StoreError::LoopNotFound(format!("no loop {query} -> {matched} in session '{}'", s.meta.id))
-            })?;
-            let mut record = decode(&old)?;
-            record.verdict = Some(verdict);
-            let value = serde_json::to_vec(&record).map_err(|e| StoreError::Storage(e.to_string()))?;
-            self.note(trees.loops.insert(key, value))?;
-            record
-        };
-        self.durable().await?;
+        let trees = s.trees()?;
+        let key = loop_key(query, matched);
+        let old = self.note(trees.loops.get(key))?.ok_or_else(|| {
+            StoreError::LoopNotFound(format!("no loop {query} -> {matched} in session '{}'", s.meta.id))
+        })?;
+        let mut record = decode(&old)?;
+        record.verdict = Some(verdict);
+        let value = serde_json::to_vec(&record).map_err(|e| StoreError::Storage(e.to_string()))?;
+        self.note(trees.loops.insert(key, value))?;
         Ok(record)
     }
 }
@@ -287,5 +279,33 @@ mod tests {
         assert!(a < b && b < c);
         assert_eq!(key_loop(&c), Some((2, 1)));
         assert_eq!(key_loop(&[0u8; 3]), None);
+    }
+
+    /// Both backends take loops by their query frame's position in the batch; sled names them
+    /// by the ids it gave, as the log does in its transaction.
+    #[test]
+    fn kept_loops_get_their_query_frame_s_id_by_position() {
+        let record = |m: u64| LoopRecord {
+            query_frame: 0,
+            match_frame: m,
+            query_robot: "r".into(),
+            match_robot: "r".into(),
+            query_time: 0.0,
+            match_time: 0.0,
+            score: 0.9,
+            rank: 0,
+            confidence: None,
+            checked: false,
+            verified: false,
+            inliers: 0,
+            relative_pose: None,
+            inlier_matches: Vec::new(),
+            found: 0.0,
+            verdict: None,
+        };
+        let named = with_ids(vec![(0, record(3)), (2, record(4)), (5, record(9))], &[70, 71, 72]);
+        let pairs: Vec<(u64, u64)> = named.iter().map(|l| (l.query_frame, l.match_frame)).collect();
+        // Position 5 names no frame of a 3-frame batch: dropped, never given another's id.
+        assert_eq!(pairs, [(70, 3), (72, 4)]);
     }
 }

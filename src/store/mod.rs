@@ -1,30 +1,31 @@
-//! Map sessions on disk (sled) with an in-memory exact search index per session.
+//! Map sessions on disk (sled, or the PostgreSQL cluster's log with sled as its cache), each with
+//! its search index (`crate::index`) filled from its records.
+mod backend;
 mod cluster;
 mod cluster_jobs;
-pub mod device;
 pub mod disk;
 pub mod durability;
+mod embedded;
 pub mod health;
-pub mod index;
-pub mod kernels;
 pub mod loops;
+mod operations;
 mod owners;
 pub mod pg;
 mod pg_jobs;
 mod pg_members;
 pub use owners::{ClusterView, HeldSession, Membership};
-pub mod query;
 pub mod record;
 mod records;
 mod reopen;
 
+use crate::index::query::{self, LoopQuery, Match, Pose};
+use crate::index::{normalize, SessionIndex, Storage};
+use backend::dispatch;
 pub use cluster::tracking_staleness;
 use disk::Disk;
 use health::Health;
-use index::SessionIndex;
+use operations::Operations as _;
 use parking_lot::{MappedRwLockReadGuard, Mutex, RwLock, RwLockReadGuard};
-use query::{LoopQuery, Match, Pose};
-pub use record::Storage;
 use record::{decode_frame, encode_frame, frame_key, key_frame, FrameHeader, SessionMeta};
 use serde::Serialize;
 use std::collections::HashMap;
@@ -55,6 +56,18 @@ pub enum StoreError {
     /// Writes cannot succeed now (a storage failure not yet recovered, or a reopen under way).
     #[error("{0}")]
     Unavailable(String),
+}
+
+impl From<query::InvalidQuery> for StoreError {
+    fn from(e: query::InvalidQuery) -> Self {
+        StoreError::InvalidArgument(e.0)
+    }
+}
+
+impl From<crate::index::InvalidDescriptor> for StoreError {
+    fn from(e: crate::index::InvalidDescriptor) -> Self {
+        StoreError::InvalidArgument(e.0.into())
+    }
 }
 
 impl From<sled::Error> for StoreError {
@@ -147,9 +160,9 @@ pub struct Store {
     /// Searches running at once on blocking threads (never on the async executor).
     search_slots: Arc<Semaphore>,
     search: SearchConfig,
-    /// `serve --cluster`: sessions and frames live in the replicated log; the sled folder is
-    /// this node's cache of them (`cluster.rs`).
-    cluster: Option<cluster::Cluster>,
+    /// Where the truth lives, chosen once at open (`backend.rs`): sled here, or the cluster's
+    /// replicated log with the sled folder as this node's cache of it (`cluster.rs`).
+    backend: backend::Backend,
 }
 
 /// A write whose flush failed: not stored, and the store refuses writes until it recovers.
@@ -197,20 +210,6 @@ fn valid_session_id(id: &str) -> bool {
     }
 }
 
-/// Unit length, finite values: cosine similarity is then a dot product.
-pub fn normalize(descriptor: &mut [f32]) -> Result<(), StoreError> {
-    if descriptor.iter().any(|v| !v.is_finite()) {
-        return Err(StoreError::InvalidArgument("descriptor has non-finite values".into()));
-    }
-    // f64: squares of large f32 values would overflow to infinity.
-    let norm = descriptor.iter().map(|&v| (v as f64) * (v as f64)).sum::<f64>().sqrt();
-    if !norm.is_finite() || norm < 1e-12 {
-        return Err(StoreError::InvalidArgument("descriptor is all zeros (or its norm is out of range)".into()));
-    }
-    descriptor.iter_mut().for_each(|v| *v = (*v as f64 / norm) as f32);
-    Ok(())
-}
-
 /// Where loop searches run.
 #[derive(Clone, Copy, Debug)]
 pub struct SearchConfig {
@@ -242,19 +241,23 @@ impl Store {
 
     /// As [`Store::open`], with searches where `search` says.
     pub fn open_with(dir: &Path, search: SearchConfig) -> Result<Self, StoreError> {
-        Self::open_dir(dir, search, None)
+        Self::open_dir(dir, search, backend::Backend::Sled(embedded::Sled))
     }
 
     /// Opens the folder; with a cluster log, the sessions cached there from an earlier run are
     /// dropped (the log is the authority) and loaded again from it on first use.
-    fn open_dir(dir: &Path, search: SearchConfig, cluster: Option<cluster::Cluster>) -> Result<Self, StoreError> {
+    fn open_dir(dir: &Path, search: SearchConfig, backend: backend::Backend) -> Result<Self, StoreError> {
         std::fs::create_dir_all(dir).map_err(|e| StoreError::Storage(format!("{}: {e}", dir.display())))?;
         let health = Arc::new(Health::default());
         let disk = Disk::open(dir, health.clone())?;
         let t = Instant::now();
         let mut sessions = HashMap::new();
         let mut frames = 0;
-        if cluster.is_some() {
+        let sled_is_cache = match &backend {
+            backend::Backend::Sled(b) => b.sled_is_cache(),
+            backend::Backend::Cluster(b) => b.sled_is_cache(),
+        };
+        if sled_is_cache {
             for key in disk.sessions.iter().keys() {
                 let key = key?;
                 for tree in trees_of(&String::from_utf8_lossy(&key)) {
@@ -289,7 +292,7 @@ impl Store {
             search_threads: cores(),
             search_slots: Arc::new(Semaphore::new(search.max_concurrent.max(1))),
             search,
-            cluster,
+            backend,
         })
     }
 
@@ -297,28 +300,7 @@ impl Store {
     pub async fn create_session(&self, id: Option<String>, new: NewSession) -> Result<SessionMeta, StoreError> {
         let meta = new_meta(id, new)?;
         self.health.writable()?;
-        if let Some(c) = &self.cluster {
-            return self.create_in_cluster(c, meta).await;
-        }
-        {
-            let _admin = self.admin.lock();
-            let disk = self.disk()?;
-            if self.sessions.read().contains_key(&meta.id) {
-                return Err(StoreError::SessionExists(meta.id));
-            }
-            let session = Session::load(&disk.db, meta.clone(), self.search)?;
-            self.note(disk.sessions.insert(meta.id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises")))?;
-            self.sessions.write().insert(meta.id.clone(), Arc::new(session));
-        }
-        if let Err(e) = self.durable().await {
-            // Not acknowledged: the session goes (a reopen also drops it from disk if it is there).
-            self.sessions.write().remove(&meta.id);
-            if let Ok(disk) = self.disk() {
-                let _ = disk.sessions.remove(meta.id.as_bytes());
-            }
-            return Err(e);
-        }
-        Ok(meta)
+        dispatch!(async self, create_session(self, meta))
     }
 
     pub fn session(&self, id: &str) -> Result<Arc<Session>, StoreError> {
@@ -334,13 +316,7 @@ impl Store {
     /// Deletes the session and its frames from disk and memory.
     pub async fn delete_session(&self, id: &str) -> Result<(), StoreError> {
         self.health.writable()?;
-        if let Some(c) = &self.cluster {
-            return self.delete_in_cluster(c, id).await;
-        }
-        if !self.remove_local(id)? {
-            return Err(StoreError::SessionNotFound(id.into()));
-        }
-        self.durable().await
+        dispatch!(async self, delete_session(self, id))
     }
 
     /// Takes the session out of memory and drops its trees (not yet durable); false: there was
@@ -376,16 +352,17 @@ impl Store {
     /// searchable right after its flush, on the flusher, whether or not the caller still waits:
     /// a dropped request cannot leave a frame on disk that the index does not know.
     pub async fn add_frames(&self, s: &Arc<Session>, frames: Vec<NewFrame>) -> Result<Vec<u64>, StoreError> {
-        self.add_frames_keeping(s, frames, |_| Vec::new()).await
+        self.add_frames_keeping(s, frames, Vec::new()).await
     }
 
-    /// As [`Store::add_frames`], with the loop candidates answered for them (made from their
-    /// ids) written in the same flush: kept exactly when the frames are.
+    /// As [`Store::add_frames`], with the loop candidates answered for them (each by its query
+    /// frame's position in `frames`, [`loops::KeptLoops`]) kept with them: exactly when the
+    /// frames are.
     pub async fn add_frames_keeping(
         &self,
         s: &Arc<Session>,
         frames: Vec<NewFrame>,
-        loops: impl FnOnce(&[u64]) -> Vec<loops::LoopRecord>,
+        loops: loops::KeptLoops,
     ) -> Result<Vec<u64>, StoreError> {
         self.health.writable()?;
         let mut prepared = Vec::with_capacity(frames.len());
@@ -394,39 +371,7 @@ impl Store {
             normalize(&mut f.descriptor)?;
             prepared.push(f);
         }
-        if let Some(c) = &self.cluster {
-            return self.add_in_cluster(c, s, prepared, loops).await;
-        }
-        let written = self.note(Self::write_frames(s, &prepared));
-        let (written, added_bytes) = written?;
-        if let Err(e) = self.note(s.write_loops(&loops(&written))) {
-            for &id in &written {
-                let _ = s.remove(id);
-            }
-            return Err(e);
-        }
-        // No await between the inserts and this: the publish is queued with them.
-        let (session, ids) = (s.clone(), written.clone());
-        let publish: durability::AfterFlush = Box::new(move |flushed| match flushed {
-            Ok(()) => {
-                // Searchable once durable: a match never points at a frame that could still vanish.
-                let mut index = session.index.write();
-                for (f, &id) in prepared.iter().zip(&ids) {
-                    index.push(id, &f.robot_id, f.timestamp, f.pose, &f.descriptor);
-                }
-                session.bytes.fetch_add(added_bytes, Relaxed);
-            }
-            Err(_) => {
-                // Not acknowledged: take the frames back so they do not reappear after a restart
-                // (if the database fails this too, a reopen drops what the index does not hold).
-                for &id in &ids {
-                    let _ = session.remove(id);
-                }
-            }
-        });
-        let flushed = self.disk()?.commit.durable_then(Some(publish));
-        flushed.await.map_err(not_durable)?;
-        Ok(written)
+        dispatch!(async self, add_frames(self, s, prepared, loops))
     }
 
     /// Inserts the frames (all or none) and returns their ids and bytes; not yet durable.
@@ -616,7 +561,7 @@ impl Session {
                 self.meta.dim
             )));
         }
-        q.validate().map_err(StoreError::InvalidArgument)?;
+        q.validate()?;
         normalize(&mut descriptor)?;
         Ok(self.index.read().search(&descriptor, q, threads))
     }
@@ -674,7 +619,7 @@ impl Session {
 
     /// Candidates sequence verification adds: the frames the past votes for (see
     /// `index::SessionIndex::voted`), scored against `query` under the query's filters. The past is
-    /// the robot's newest `n` frames, or the `n` frames before `stored`.
+    /// the robot's newest `n` frames, or the `n` frames before `stored`. `query` is of unit length.
     pub fn voted(&self, query: &[f32], q: &LoopQuery, stored: Option<u64>, n: usize, skip: &[u64]) -> Vec<Match> {
         let index = self.index.read();
         let votes = index.votes(q.robot_id.as_deref(), stored, n);

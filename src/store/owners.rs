@@ -6,7 +6,6 @@
 //! is already warm when the first is gone. Any node still answers any session (it loads it on
 //! demand: the fallback); it drops a session it does not own once no request used it for
 //! `evict_idle`, which bounds a node's memory to what it owns and what it serves.
-use super::pg::Head;
 use super::{Store, StoreError};
 use serde::Serialize;
 use sha2::{Digest, Sha256};
@@ -52,9 +51,17 @@ pub(super) struct Members {
 }
 
 impl Members {
+    pub(super) fn join(&self, me: Membership) {
+        *self.me.write() = Some(me);
+    }
+
     /// This node's membership (None before it joined).
     pub(super) fn me(&self) -> Option<Membership> {
         self.me.read().clone()
+    }
+
+    pub(super) fn set_live(&self, live: Vec<String>) {
+        *self.live.write() = live;
     }
 
     /// The live members seen at the last round (empty before the first).
@@ -81,50 +88,9 @@ pub fn owners<'a>(session: &str, members: &'a [String], r: usize) -> Vec<&'a str
 }
 
 impl Store {
-    /// Joins the cluster's membership as `me` (the first heartbeat is the next
-    /// [`Store::follow_members`]). No effect with sled.
-    pub fn join_members(&self, me: Membership) {
-        if let Some(c) = &self.cluster {
-            *c.members.me.write() = Some(me);
-        }
-    }
-
-    /// This node's name among the members (empty before it joined, and with sled).
-    pub(super) fn node_name(&self) -> String {
-        self.cluster.as_ref().and_then(|c| c.members.me()).map(|m| m.node).unwrap_or_default()
-    }
-
-    /// One round: heartbeat, read the live members, load and catch up the sessions this node
-    /// owns, and drop the ones it neither owns nor used within `evict_idle`.
-    pub async fn follow_members(&self) -> Result<(), StoreError> {
-        let Some(c) = &self.cluster else { return Ok(()) };
-        let Some(me) = c.members.me.read().clone() else { return Ok(()) };
-        c.log.heartbeat(&me.node).await?;
-        let live = c.log.members(me.ttl).await?;
-        *c.members.live.write() = live.clone();
-        let heads = c.log.heads().await?;
-        let owned = |id: &str| owners(id, &live, me.owners).contains(&me.node.as_str());
-        for head in heads.iter().filter(|h| owned(&h.meta.id)) {
-            let (id, version) = (head.meta.id.clone(), head.version);
-            let s = self.cached(c, Head { meta: head.meta.clone(), tbl: head.tbl, version })?;
-            match self.catch_up(c, &s, version).await {
-                Ok(()) | Err(StoreError::SessionNotFound(_)) => {}
-                Err(e) => tracing::warn!(session = %id, error = %e, "an owned session not brought up to date"),
-            }
-        }
-        self.drop_deleted(&heads)?;
-        if let Some(idle) = me.evict_idle {
-            let held: Vec<String> = self.sessions.read().keys().cloned().collect();
-            for id in held.iter().filter(|id| !owned(id)) {
-                self.evict_if_idle(id, idle)?;
-            }
-        }
-        Ok(())
-    }
-
     /// Drops a session from memory and this node's cache if no request holds it and none used
     /// it within `idle` (the log keeps it; the next request loads it again).
-    fn evict_if_idle(&self, id: &str, idle: Duration) -> Result<(), StoreError> {
+    pub(super) fn evict_if_idle(&self, id: &str, idle: Duration) -> Result<(), StoreError> {
         let _admin = self.admin.lock();
         let evicted = {
             let mut held = self.sessions.write();
@@ -146,34 +112,6 @@ impl Store {
     /// Notes that a request uses the session now (it is then kept at least `evict_idle`).
     pub(super) fn touch(s: &super::Session) {
         s.used.store(now_ms(), Relaxed);
-    }
-
-    /// This node's view of the cluster (None with sled).
-    pub fn cluster_view(&self) -> Option<ClusterView> {
-        let c = self.cluster.as_ref()?;
-        let me = c.members.me.read().clone()?;
-        let members = c.members.live.read().clone();
-        let mut held: Vec<HeldSession> = self
-            .sessions
-            .read()
-            .values()
-            .map(|s| HeldSession {
-                session: s.meta.id.clone(),
-                frames: s.index.read().len(),
-                owner: owners(&s.meta.id, &members, me.owners).contains(&me.node.as_str()),
-            })
-            .collect();
-        held.sort_by(|a, b| a.session.cmp(&b.session));
-        Some(ClusterView { node: me.node, owners: me.owners, members, held })
-    }
-
-    /// Leaves the membership (a clean shutdown): the others own this node's sessions at once.
-    pub async fn leave_members(&self) {
-        let Some(c) = &self.cluster else { return };
-        let Some(me) = c.members.me.read().clone() else { return };
-        if let Err(e) = c.log.leave(&me.node).await {
-            tracing::warn!(error = %e, "could not leave the cluster's members (they drop this node after the ttl)");
-        }
     }
 }
 

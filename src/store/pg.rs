@@ -17,8 +17,9 @@
 //! whose commits do not wait for a synchronous standby (`synchronous_commit` on or stronger and
 //! `synchronous_standby_names` set), unless it is opened with `Replication::NotRequired`.
 use super::loops::{LoopRecord, Verdict};
-use super::record::{decode_frame, encode_frame, FrameHeader, SessionMeta, Storage};
+use super::record::{decode_frame, encode_frame, FrameHeader, SessionMeta};
 use super::{NewFrame, StoreError};
+use crate::index::Storage;
 use deadpool_postgres::{Manager, ManagerConfig, Object, Pool, RecyclingMethod};
 use std::sync::atomic::{AtomicU64, Ordering::SeqCst};
 use std::sync::Arc;

@@ -1,5 +1,5 @@
 //! What sled holds: session metadata (JSON) and frame records (small header + raw descriptor).
-use super::query::Pose;
+use crate::index::query::Pose;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -13,7 +13,7 @@ pub struct SessionMeta {
     pub descriptor_id: String,
     pub storage: Storage,
     /// Defaults applied to this session's loop queries.
-    pub default_query: super::query::LoopQuery,
+    pub default_query: crate::index::query::LoopQuery,
     /// The camera that takes the session's frames: verified loops then carry a relative pose.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera: Option<Camera>,
@@ -45,24 +45,7 @@ pub struct FrameHeader {
     pub metadata: Option<serde_json::Value>,
 }
 
-/// How a session keeps its descriptors (on disk and in memory).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Storage {
-    /// Half the bytes, twice the search speed; cosine error ~1e-3.
-    #[default]
-    F16,
-    F32,
-}
-
-impl Storage {
-    pub fn bytes_per_value(self) -> usize {
-        match self {
-            Storage::F16 => 2,
-            Storage::F32 => 4,
-        }
-    }
-}
+use crate::index::Storage;
 
 const VERSION: u8 = 1;
 

@@ -9,7 +9,7 @@ pub mod geometric;
 pub mod pool;
 pub mod sequence;
 
-use crate::store::query::Match;
+use crate::index::query::Match;
 use confidence::{Calibrator, Evidence};
 use features::Features;
 use geometric::{verify, Intrinsics, Verification, VerifyParams};
@@ -89,7 +89,7 @@ pub const MARGIN_POOL: usize = 10;
 
 /// How many candidates a query fetches by descriptor before its checks: what it returns, its
 /// votes, the margin's pool, the candidates it checks and the sequence pool (server and eval).
-pub fn search_width(q: &crate::store::query::LoopQuery) -> usize {
+pub fn search_width(q: &crate::index::query::LoopQuery) -> usize {
     let v = &q.verify;
     let widths = [
         q.k,
@@ -98,7 +98,7 @@ pub fn search_width(q: &crate::store::query::LoopQuery) -> usize {
         if v.geometric { v.candidates } else { 0 },
         if v.sequence { sequence::POOL } else { 0 },
     ];
-    widths.into_iter().max().unwrap_or(q.k).min(crate::store::query::MAX_K)
+    widths.into_iter().max().unwrap_or(q.k).min(crate::index::query::MAX_K)
 }
 
 /// Checks the first `checked` candidates (best cosine first, each with its stored features, if

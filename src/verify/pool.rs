@@ -2,8 +2,8 @@
 //! request executor nor on the model thread.
 use super::features::{from_image_bytes, FeatureParams, Features};
 use super::{Checks, LoopMatch};
+use crate::index::query::Match;
 use crate::model::preprocess::ImageLimits;
-use crate::store::query::Match;
 use std::sync::Arc;
 use tokio::sync::Semaphore;
 

@@ -4,7 +4,7 @@
 //! the past), each similarity z-scored by its history frame's similarities to the map (a frame
 //! that looks like everything says little), and the candidate must stand out from candidates
 //! elsewhere on the map. Cost: O(K·L) dot products per query and O(L·256) for the history
-//! frames' statistics (`store::index::ROW_SAMPLE` frames of the map), never a scan of the map per history
+//! frames' statistics (`index::ROW_SAMPLE` frames of the map), never a scan of the map per history
 //! frame.
 use serde::Serialize;
 

@@ -5,11 +5,12 @@ pub mod loops;
 mod state;
 
 use crate::api::error::ApiError;
-use crate::api::jobs::{JobStatus, SequenceRequest};
+use crate::api::jobs::SequenceRequest;
 use crate::api::service::{Content, CreateSession, FrameInput, LoopMatch, QueryOverrides, QueryTarget};
+use crate::api::wire::JobStatus;
 use crate::auth::{Auth, Caller};
+use crate::index::query::Pose;
 use crate::model::network::Variant;
-use crate::store::query::Pose;
 use crate::store::SessionInfo;
 use axum::body::Bytes;
 use axum::extract::{DefaultBodyLimit, FromRequest, Multipart, Path, Query, Request, State};

@@ -4,7 +4,7 @@ use crate::api::error::ApiError;
 use crate::api::jobs::Jobs;
 use crate::api::service::LoopService;
 use crate::auth::Auth;
-use crate::store::query::Pose;
+use crate::index::query::Pose;
 use axum::http::StatusCode;
 use serde::Serialize;
 use std::sync::Arc;

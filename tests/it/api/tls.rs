@@ -161,6 +161,34 @@ async fn mutual_tls_on_both_apis_and_a_reload_on_sighup() {
     assert!(listed.0.status.success(), "{}", String::from_utf8_lossy(&listed.0.stderr));
     assert!(!listed.1.status.success(), "loopd tenant without a client certificate on an mTLS server");
 
+    // `loopd eval --server` over gRPC on the same server: the one client's key, CA and certificate.
+    let gt = write(dir.path(), "gt.csv", "0,0\n");
+    let (grpc_url, ca_file) = (format!("https://127.0.0.1:{}", server.grpc_addr.port()), files.client_ca.clone());
+    let (robot_cert, robot_key) = (dir.path().join("robot.pem"), dir.path().join("robot.key"));
+    let evaluated = tokio::task::spawn_blocking(move || {
+        let run = |with_cert: bool, key: &str| {
+            let mut c = loopd_bin();
+            c.args(["eval", "--server", &grpc_url, "--session", "s", "--json", "--gt"]).arg(&gt);
+            c.arg("--ca").arg(ca_file.as_ref().unwrap());
+            if with_cert {
+                c.arg("--client-cert").arg(&robot_cert).arg("--client-key").arg(&robot_key);
+            }
+            c.env_remove("LOOPD_KEY_FILE").env("LOOPD_KEY", key).output().unwrap()
+        };
+        (run(true, ADMIN), run(false, ADMIN), run(true, "not-a-key"))
+    })
+    .await
+    .unwrap();
+    assert!(evaluated.0.status.success(), "{}", String::from_utf8_lossy(&evaluated.0.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&evaluated.0.stdout).unwrap();
+    assert_eq!(report["frames"], 1, "{report}");
+    assert!(!evaluated.1.status.success(), "loopd eval without a client certificate on an mTLS server");
+    let refused = String::from_utf8_lossy(&evaluated.2.stderr);
+    assert!(
+        !evaluated.2.status.success() && refused.contains("valid authentication credentials"),
+        "a wrong key: {refused}"
+    );
+
     // A new certificate, then SIGHUP: new connections get it, the open stream goes on.
     let before = served_certificate(server.http_addr, &ca_pem, &robot).await;
     assert_eq!(before, der(&server_cert.0));

@@ -6,9 +6,11 @@
 //! follow commit order and a reload gives the frames back bit for bit (f32) in that order, a
 //! deleted session is gone, and a primary whose commits do not wait for a standby is refused.
 use crate::common::pg::{env, psql, server};
+use loopd::index::normalize;
+use loopd::index::Storage;
 use loopd::store::pg::{PgLog, Replication};
-use loopd::store::record::{SessionMeta, Storage};
-use loopd::store::{normalize, NewFrame, StoreError};
+use loopd::store::record::SessionMeta;
+use loopd::store::{NewFrame, StoreError};
 use std::time::Duration;
 
 fn meta(id: &str) -> SessionMeta {

@@ -106,7 +106,7 @@ pub fn desk_frame(session: &str, i: usize) -> loopd::pb::AddFrameRequest {
 
 /// A new session of 2048-d descriptors (the ImageNet model's) named `name`, stored as `storage`,
 /// with the default query options: what the store-level tests create.
-pub fn session(name: &str, storage: loopd::store::Storage) -> loopd::store::NewSession {
+pub fn session(name: &str, storage: loopd::index::Storage) -> loopd::store::NewSession {
     loopd::store::NewSession {
         name: name.into(),
         dim: 2048,

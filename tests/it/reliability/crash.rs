@@ -121,7 +121,7 @@ async fn client(role: usize, s: Arc<Loopd>, ledger: Shared, dim: usize, cycle: u
                 let d = random_descriptor(&mut rng, dim);
                 // As the store keeps it: normalised, then in the session's f16 (the default).
                 let mut expected = d.clone();
-                loopd::store::normalize(&mut expected).unwrap();
+                loopd::index::normalize(&mut expected).unwrap();
                 let expected: Vec<f32> = expected.iter().map(|&v| half::f16::from_f32(v).to_f32()).collect();
                 let id = if role == 4 {
                     let req = pb::AddFrameRequest {
@@ -292,7 +292,7 @@ async fn kill_9_under_load_loses_no_acknowledged_frame() {
             exact += 1;
             // Searchable: one in 25 is searched for (each search scans the whole session).
             if exact % 25 == 1 {
-                let q = loopd::store::query::LoopQuery { k: 1, ..Default::default() };
+                let q = loopd::index::query::LoopQuery { k: 1, ..Default::default() };
                 let best = tokio::task::block_in_place(|| rt.block_on(store.query(&s, stored.clone(), &q))).unwrap();
                 assert_eq!(best[0].frame_id, *id, "descriptor frame {id} is not its own best match");
                 searched += 1;

@@ -4,8 +4,9 @@ use crate::common::*;
 use loopd::api::server::{RunningServer, ServerConfig};
 use loopd::api::service::CreateSession;
 use loopd::engine::EngineConfig;
+use loopd::index::Storage;
 use loopd::model::network::Variant;
-use loopd::store::{NewFrame, Storage};
+use loopd::store::NewFrame;
 use std::time::{Duration, Instant};
 
 fn median(mut v: Vec<f64>) -> f64 {

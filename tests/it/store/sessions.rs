@@ -1,9 +1,9 @@
 //! Map sessions on a real sled database, with descriptors of real Corridor frames.
 use crate::common::*;
+use loopd::index::query::{LoopQuery, Match, Pose, Scope};
+use loopd::index::Storage;
 use loopd::model::network::Variant;
-use loopd::store::query::{LoopQuery, Match, Pose, Scope};
 use loopd::store::record::FrameHeader;
-use loopd::store::Storage;
 use loopd::store::{NewFrame, Store, StoreError};
 use std::sync::OnceLock;
 
@@ -307,7 +307,7 @@ async fn bad_writes_get_clear_errors_and_change_nothing() {
 
 #[test]
 fn batched_search_matches_single_searches() {
-    use loopd::store::index::SessionIndex;
+    use loopd::index::SessionIndex;
     let (query, reference) = corridor();
     for storage in [Storage::F16, Storage::F32] {
         let mut index = SessionIndex::new(2048, storage);
@@ -378,7 +378,7 @@ async fn device_search_matches_host_search() {
                 for d in [&query[3], &query[60], &query[110]] {
                     let a = host.session("c").unwrap().search(d.clone(), q, 2).unwrap();
                     let b = dev.session("c").unwrap().search(d.clone(), q, 2).unwrap();
-                    let ids = |m: &[loopd::store::query::Match]| m.iter().map(|m| m.frame_id).collect::<Vec<_>>();
+                    let ids = |m: &[loopd::index::query::Match]| m.iter().map(|m| m.frame_id).collect::<Vec<_>>();
                     // The device only proposes candidates; the host scores them again with the
                     // f32 query, so ranks and scores are the host's, for f16 sessions too.
                     assert_eq!(ids(&a), ids(&b), "{storage:?} {round} query {qi}");
@@ -460,7 +460,7 @@ async fn a_dropped_write_is_never_a_ghost() {
 /// (docs/storage.md: "ties: the earlier frame").
 #[test]
 fn equal_scores_rank_the_earlier_frame_first_with_any_number_of_threads() {
-    use loopd::store::index::SessionIndex;
+    use loopd::index::SessionIndex;
     let (query, _) = corridor();
     // 6,000 identical rows: enough values for the search to split across threads.
     let mut index = SessionIndex::new(2048, Storage::F16);
@@ -482,11 +482,11 @@ async fn a_stored_frame_query_takes_the_full_k_and_excludes_itself() {
     let dir = tempfile::tempdir().unwrap();
     let store = Store::open(dir.path()).unwrap();
     two_robot_session(&store, "k", Storage::F16).await;
-    let max = LoopQuery { k: loopd::store::query::MAX_K, ..Default::default() };
+    let max = LoopQuery { k: loopd::index::query::MAX_K, ..Default::default() };
     let m = query_frame(&store, "k", 1005, &max).await.unwrap();
     assert_eq!(m.len(), 221, "every other frame of the session");
     assert!(m.iter().all(|m| m.frame_id != 1005));
-    let over = LoopQuery { k: loopd::store::query::MAX_K + 1, ..Default::default() };
+    let over = LoopQuery { k: loopd::index::query::MAX_K + 1, ..Default::default() };
     assert!(
         matches!(query_frame(&store, "k", 1005, &over).await, Err(StoreError::InvalidArgument(m)) if m.contains("k = 1001"))
     );

@@ -1,11 +1,57 @@
-//! One session's descriptors, contiguous in memory, searched exactly (cosine = dot of unit rows).
-use super::device::{DeviceRows, HostRows};
-use super::kernels::{dots_f16, dots_f32, dots_many_f16, dots_many_f32};
-use super::query::{LoopQuery, Match, Pose, Scope};
-use super::record::Storage;
+//! Search, a layer of its own: one session's descriptors, contiguous in memory, searched exactly
+//! (cosine = dot of unit rows), with the sequence helpers (trails, votes) that read the same rows.
+//! `query` holds the query options and results, `kernels` the host SIMD dot products, `device`
+//! the rows mirrored on a libtorch device. It imports no other layer of loopd: persistence
+//! (`store`) fills it from its records and asks it, verification reads its matches.
+pub mod device;
+pub mod kernels;
+pub mod query;
+
+use device::{DeviceRows, HostRows};
+use kernels::{dots_f16, dots_f32, dots_many_f16, dots_many_f32};
 use ordered_float::OrderedFloat;
+use query::{LoopQuery, Match, Pose, Scope};
+use serde::{Deserialize, Serialize};
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap};
+
+/// How a session keeps its descriptors (on disk and in memory).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Storage {
+    /// Half the bytes, twice the search speed; cosine error ~1e-3.
+    #[default]
+    F16,
+    F32,
+}
+
+impl Storage {
+    pub fn bytes_per_value(self) -> usize {
+        match self {
+            Storage::F16 => 2,
+            Storage::F32 => 4,
+        }
+    }
+}
+
+/// Why a descriptor cannot be searched (the store and the service answer it as a bad argument).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct InvalidDescriptor(pub &'static str);
+
+/// Unit length, finite values: cosine similarity is then a dot product.
+pub fn normalize(descriptor: &mut [f32]) -> Result<(), InvalidDescriptor> {
+    if descriptor.iter().any(|v| !v.is_finite()) {
+        return Err(InvalidDescriptor("descriptor has non-finite values"));
+    }
+    // f64: squares of large f32 values would overflow to infinity.
+    let norm = descriptor.iter().map(|&v| (v as f64) * (v as f64)).sum::<f64>().sqrt();
+    if !norm.is_finite() || norm < 1e-12 {
+        return Err(InvalidDescriptor("descriptor is all zeros (or its norm is out of range)"));
+    }
+    descriptor.iter_mut().for_each(|v| *v = (*v as f64 / norm) as f32);
+    Ok(())
+}
 
 enum Rows {
     F16(Vec<u16>),
@@ -281,7 +327,7 @@ impl SessionIndex {
     /// Top-k rows by dot product with `q` that pass the query's filters, best first.
     pub fn search(&self, q: &[f32], opts: &LoopQuery, threads: usize) -> Vec<Match> {
         let filter = Filter::new(self, opts);
-        let k = opts.k.min(super::query::MAX_K);
+        let k = opts.k.min(query::MAX_K);
         if k == 0 || self.frames.is_empty() {
             return Vec::new();
         }
@@ -316,7 +362,7 @@ impl SessionIndex {
     /// time against all queries with the register-blocked kernel (each row value loaded once per
     /// four queries), threads taking blocks in turn; compute-bound rather than memory-bound.
     pub fn search_batch(&self, queries: &[Vec<f32>], opts: &LoopQuery, threads: usize) -> Vec<Vec<Match>> {
-        let k = opts.k.min(super::query::MAX_K);
+        let k = opts.k.min(query::MAX_K);
         if queries.len() <= 1 || k == 0 || self.frames.is_empty() {
             return queries.iter().map(|q| self.search(q, opts, threads)).collect();
         }

@@ -105,46 +105,57 @@ impl Default for LoopQuery {
     }
 }
 
+/// Why a query's options cannot be searched: a bad argument of the client's.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct InvalidQuery(pub String);
+
 impl LoopQuery {
     /// The one place a query's options are checked; every search path calls it.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), InvalidQuery> {
         if !(1..=MAX_K).contains(&self.k) {
-            return Err(format!("k = {} is out of range 1..={MAX_K}", self.k));
+            return Err(InvalidQuery(format!("k = {} is out of range 1..={MAX_K}", self.k)));
         }
         if !self.min_score.is_finite() {
-            return Err("min_score must be a finite number".into());
+            return Err(InvalidQuery("min_score must be a finite number".into()));
         }
         if !(0.0..=1.0).contains(&self.min_confidence) {
-            return Err(format!("min_confidence = {} is out of range 0..=1", self.min_confidence));
+            return Err(InvalidQuery(format!("min_confidence = {} is out of range 0..=1", self.min_confidence)));
         }
         if !self.exclude_last_seconds.is_finite() || self.exclude_last_seconds < 0.0 {
-            return Err("exclude_last_seconds must be a finite number >= 0".into());
+            return Err(InvalidQuery("exclude_last_seconds must be a finite number >= 0".into()));
         }
         if self.at_time.is_some_and(|t| !t.is_finite()) {
-            return Err("the query time must be a finite number".into());
+            return Err(InvalidQuery("the query time must be a finite number".into()));
         }
         if let Some((a, b)) = self.time_range {
             if a.is_nan() || b.is_nan() || a > b {
-                return Err(format!("time range {a}..{b} is not an ordered pair of numbers"));
+                return Err(InvalidQuery(format!("time range {a}..{b} is not an ordered pair of numbers")));
             }
         }
         if let Some((a, b)) = self.frame_id_range {
             if a > b {
-                return Err(format!("frame id range {a}..{b} is empty (from > to)"));
+                return Err(InvalidQuery(format!("frame id range {a}..{b} is empty (from > to)")));
             }
         }
         let v = &self.verify;
         if !(1..=MAX_CANDIDATES).contains(&v.candidates) {
-            return Err(format!("verify_candidates = {} is out of range 1..={MAX_CANDIDATES}", v.candidates));
+            return Err(InvalidQuery(format!(
+                "verify_candidates = {} is out of range 1..={MAX_CANDIDATES}",
+                v.candidates
+            )));
         }
         if !(8..=10_000).contains(&v.min_inliers) {
-            return Err(format!("min_inliers = {} is out of range 8..=10000", v.min_inliers));
+            return Err(InvalidQuery(format!("min_inliers = {} is out of range 8..=10000", v.min_inliers)));
         }
         if !(1..=MAX_SEQUENCE_LENGTH).contains(&v.sequence_length) {
-            return Err(format!("sequence_length = {} is out of range 1..={MAX_SEQUENCE_LENGTH}", v.sequence_length));
+            return Err(InvalidQuery(format!(
+                "sequence_length = {} is out of range 1..={MAX_SEQUENCE_LENGTH}",
+                v.sequence_length
+            )));
         }
         if !v.min_sequence_margin.is_finite() {
-            return Err("min_sequence_margin must be a finite number".into());
+            return Err(InvalidQuery("min_sequence_margin must be a finite number".into()));
         }
         Ok(())
     }
