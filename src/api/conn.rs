@@ -131,7 +131,7 @@ impl tonic::transport::server::Connected for Guarded {
 /// Accepts the next connection that fits under the limit (beyond it, connections are closed at
 /// once and logged), with TCP_NODELAY (no Nagle: small answers leave at once instead of waiting
 /// for the client's delayed ACK) and the deadlines.
-pub async fn accept(listener: &TcpListener, limits: ConnLimits, slots: &Arc<Semaphore>) -> Guarded {
+pub async fn accept(listener: &TcpListener, limits: ConnLimits, slots: &Slots) -> Guarded {
     loop {
         let (tcp, peer) = match listener.accept().await {
             Ok(c) => c,
@@ -142,7 +142,7 @@ pub async fn accept(listener: &TcpListener, limits: ConnLimits, slots: &Arc<Sema
                 continue;
             }
         };
-        let Ok(slot) = slots.clone().try_acquire_owned() else {
+        let Ok(slot) = slots.free.clone().try_acquire_owned() else {
             tracing::warn!(%peer, "connection refused: the connection limit is reached");
             continue;
         };
@@ -150,5 +150,60 @@ pub async fn accept(listener: &TcpListener, limits: ConnLimits, slots: &Arc<Sema
             tracing::debug!(error = %e, "TCP_NODELAY not set");
         }
         return Guarded::new(tcp, limits, slot);
+    }
+}
+
+/// The connection limit of one listener, and how much of it is in use (`/metrics`).
+#[derive(Debug)]
+pub struct Slots {
+    free: Arc<Semaphore>,
+    max: usize,
+}
+
+impl Slots {
+    pub fn new(max: usize) -> Arc<Self> {
+        let max = max.max(1);
+        Arc::new(Self { free: Arc::new(Semaphore::new(max)), max })
+    }
+
+    /// Connections open now (accepted and not yet closed).
+    pub fn open(&self) -> usize {
+        self.max - self.free.available_permits()
+    }
+
+    pub fn max(&self) -> usize {
+        self.max
+    }
+}
+
+/// Both listeners' limits.
+#[derive(Debug)]
+pub struct Connections {
+    pub http: Arc<Slots>,
+    pub grpc: Arc<Slots>,
+}
+
+impl Connections {
+    pub fn new(max_per_listener: usize) -> Self {
+        Self { http: Slots::new(max_per_listener), grpc: Slots::new(max_per_listener) }
+    }
+
+    /// Prometheus text: open connections and the limit, per listener.
+    pub fn render_metrics(&self) -> String {
+        let mut out = String::from(
+            "# HELP loopd_open_connections Connections open now, per listener.\n\
+             # TYPE loopd_open_connections gauge\n",
+        );
+        for (name, s) in [("http", &self.http), ("grpc", &self.grpc)] {
+            out.push_str(&format!("loopd_open_connections{{listener=\"{name}\"}} {}\n", s.open()));
+        }
+        out.push_str(
+            "# HELP loopd_max_connections The connection limit, per listener (beyond it, closed at once).\n\
+             # TYPE loopd_max_connections gauge\n",
+        );
+        for (name, s) in [("http", &self.http), ("grpc", &self.grpc)] {
+            out.push_str(&format!("loopd_max_connections{{listener=\"{name}\"}} {}\n", s.max()));
+        }
+        out
     }
 }

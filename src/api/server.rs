@@ -1,5 +1,5 @@
 //! One process, both APIs: gRPC (tonic) and HTTP (axum) over one engine and one store.
-use super::conn::{accept, ConnLimits};
+use super::conn::{accept, ConnLimits, Connections, Slots};
 use super::grpc::admin::{AdminApi, AdminServer};
 use super::grpc::{self, GrpcApi, LoopdServer};
 use super::http::{router, AppState};
@@ -22,7 +22,6 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::Semaphore;
 use tonic::service::interceptor::InterceptedService;
 use tonic_health::ServingStatus;
 
@@ -294,12 +293,15 @@ impl RunningServer {
             members = Some(tokio::spawn(follow_members(service.store.clone(), c.tenant_refresh, rx.clone())));
         }
 
-        let state = Arc::new(AppState { service: service.clone(), auth: auth.clone(), jobs });
+        let connections = Arc::new(Connections::new(cfg.connections.max_connections));
+        let state =
+            Arc::new(AppState { service: service.clone(), auth: auth.clone(), jobs, connections: connections.clone() });
         let app = router(state, cfg.max_body_bytes).layer(tower_http::timeout::TimeoutLayer::with_status_code(
             axum::http::StatusCode::REQUEST_TIMEOUT,
             cfg.connections.request_timeout,
         ));
-        let http_task = tokio::spawn(serve_http(http, app, cfg.connections, tls.clone(), rx.clone()));
+        let http_task =
+            tokio::spawn(serve_http(http, app, cfg.connections, connections.http.clone(), tls.clone(), rx.clone()));
 
         let (health, health_service) = tonic_health::server::health_reporter();
         health.set_serving::<LoopdServer<GrpcApi>>().await;
@@ -322,7 +324,7 @@ impl RunningServer {
         let c = cfg.connections;
         // The preface is 24 bytes; a gRPC channel may then idle (keep-alive pings check the peer).
         let limits = ConnLimits { opening: c.header_timeout, opening_bytes: 24, idle: None };
-        let incoming = grpc_incoming(grpc, limits, c, tls.clone(), grpc_rx.clone());
+        let incoming = grpc_incoming(grpc, limits, c, connections.grpc.clone(), tls.clone(), grpc_rx.clone());
         let grpc_task = tokio::spawn(async move {
             tonic::transport::Server::builder()
                 .http2_keepalive_interval(Some(c.idle_timeout / 2))
@@ -439,11 +441,11 @@ fn grpc_incoming(
     listener: tokio::net::TcpListener,
     limits: ConnLimits,
     c: ConnectionConfig,
+    slots: Arc<Slots>,
     tls: Option<Arc<Tls>>,
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) -> tokio_stream::wrappers::ReceiverStream<std::io::Result<Conn>> {
     let (tx, rx) = tokio::sync::mpsc::channel(64);
-    let slots = Arc::new(Semaphore::new(c.max_connections.max(1)));
     tokio::spawn(async move {
         loop {
             let io = tokio::select! {
@@ -468,11 +470,11 @@ async fn serve_http(
     listener: tokio::net::TcpListener,
     app: axum::Router,
     c: ConnectionConfig,
+    slots: Arc<Slots>,
     tls: Option<Arc<Tls>>,
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) -> Result<()> {
     let limits = ConnLimits { opening: c.header_timeout, opening_bytes: 1, idle: Some(c.idle_timeout) };
-    let slots = Arc::new(Semaphore::new(c.max_connections.max(1)));
     let mut builder = auto::Builder::new(TokioExecutor::new());
     builder.http1().timer(TokioTimer::new()).header_read_timeout(c.header_timeout);
     let graceful = hyper_util::server::graceful::GracefulShutdown::new();

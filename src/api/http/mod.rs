@@ -85,6 +85,7 @@ async fn ready(State(s): State<Arc<AppState>>) -> Result<&'static str, ApiError>
 async fn metrics(State(s): State<Arc<AppState>>) -> impl IntoResponse {
     let mut body = s.service.engine.metrics().render_prometheus();
     body.push_str(&s.auth.render_metrics());
+    body.push_str(&s.connections.render_metrics());
     let not_kept = s.service.loops_not_kept.load(std::sync::atomic::Ordering::Relaxed);
     body.push_str(&format!(
         "# HELP loopd_loops_not_kept_total Answers whose loop candidates could not be kept.\n# TYPE loopd_loops_not_kept_total counter\nloopd_loops_not_kept_total {not_kept}\n"
