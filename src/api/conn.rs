@@ -187,23 +187,24 @@ impl Connections {
     pub fn new(max_per_listener: usize) -> Self {
         Self { http: Slots::new(max_per_listener), grpc: Slots::new(max_per_listener) }
     }
+}
 
-    /// Prometheus text: open connections and the limit, per listener.
-    pub fn render_metrics(&self) -> String {
-        let mut out = String::from(
-            "# HELP loopd_open_connections Connections open now, per listener.\n\
-             # TYPE loopd_open_connections gauge\n",
-        );
-        for (name, s) in [("http", &self.http), ("grpc", &self.grpc)] {
-            out.push_str(&format!("loopd_open_connections{{listener=\"{name}\"}} {}\n", s.open()));
+/// Open connections and the limit, per listener (`/metrics`).
+impl prometheus_client::collector::Collector for Connections {
+    fn encode(&self, mut encoder: prometheus_client::encoding::DescriptorEncoder) -> std::fmt::Result {
+        use prometheus_client::encoding::EncodeMetric;
+        use prometheus_client::metrics::{gauge::ConstGauge, MetricType};
+        type Value = fn(&Slots) -> usize;
+        let gauges: [(&str, &str, Value); 2] = [
+            ("loopd_open_connections", "Connections open now, per listener.", Slots::open),
+            ("loopd_max_connections", "The connection limit, per listener (beyond it, closed at once).", Slots::max),
+        ];
+        for (name, help, value) in gauges {
+            let mut family = encoder.encode_descriptor(name, help, None, MetricType::Gauge)?;
+            for (listener, s) in [("http", &self.http), ("grpc", &self.grpc)] {
+                ConstGauge::new(value(s) as i64).encode(family.encode_family(&[("listener", listener)])?)?;
+            }
         }
-        out.push_str(
-            "# HELP loopd_max_connections The connection limit, per listener (beyond it, closed at once).\n\
-             # TYPE loopd_max_connections gauge\n",
-        );
-        for (name, s) in [("http", &self.http), ("grpc", &self.grpc)] {
-            out.push_str(&format!("loopd_max_connections{{listener=\"{name}\"}} {}\n", s.max()));
-        }
-        out
+        Ok(())
     }
 }

@@ -7,6 +7,7 @@ pub mod inspect;
 pub mod jobs;
 pub mod kept;
 pub mod loops;
+pub mod metrics;
 pub mod server;
 pub mod service;
 pub mod tenancy;

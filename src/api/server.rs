@@ -294,8 +294,13 @@ impl RunningServer {
         }
 
         let connections = Arc::new(Connections::new(cfg.connections.max_connections));
-        let state =
-            Arc::new(AppState { service: service.clone(), auth: auth.clone(), jobs, connections: connections.clone() });
+        let metrics = Arc::new(super::metrics::registry(
+            service.engine.metrics().clone(),
+            auth.clone(),
+            connections.clone(),
+            service.loops_not_kept.clone(),
+        ));
+        let state = Arc::new(AppState { service: service.clone(), auth: auth.clone(), jobs, metrics });
         let app = router(state, cfg.max_body_bytes).layer(tower_http::timeout::TimeoutLayer::with_status_code(
             axum::http::StatusCode::REQUEST_TIMEOUT,
             cfg.connections.request_timeout,

@@ -44,9 +44,9 @@ pub enum Refusal {
 }
 
 impl Refusal {
-    const ALL: [Refusal; 4] = [Refusal::Rate, Refusal::Frames, Refusal::Sessions, Refusal::Queue];
+    pub const ALL: [Refusal; 4] = [Refusal::Rate, Refusal::Frames, Refusal::Sessions, Refusal::Queue];
 
-    fn label(self) -> &'static str {
+    pub fn label(self) -> &'static str {
         match self {
             Refusal::Rate => "rate",
             Refusal::Frames => "frames",
@@ -112,23 +112,14 @@ impl Quota {
         self.counters.refused[why as usize].fetch_add(1, Ordering::Relaxed);
     }
 
-    /// This tenant's Prometheus samples.
-    pub fn render(&self, tenant: &str, out: &mut String) {
-        use std::fmt::Write;
-        let c = &self.counters;
-        let _ =
-            writeln!(out, "loopd_tenant_requests_total{{tenant=\"{tenant}\"}} {}", c.requests.load(Ordering::Relaxed));
-        let _ = writeln!(
-            out,
-            "loopd_tenant_frames_added_total{{tenant=\"{tenant}\"}} {}",
-            c.frames_added.load(Ordering::Relaxed)
-        );
-        let _ =
-            writeln!(out, "loopd_tenant_in_flight{{tenant=\"{tenant}\"}} {}", self.in_flight.load(Ordering::Relaxed));
-        for r in Refusal::ALL {
-            let n = c.refused[r as usize].load(Ordering::Relaxed);
-            let _ = writeln!(out, "loopd_tenant_refused_total{{tenant=\"{tenant}\",limit=\"{}\"}} {n}", r.label());
-        }
+    /// Requests in flight now.
+    pub fn in_flight(&self) -> u64 {
+        self.in_flight.load(Ordering::Relaxed)
+    }
+
+    /// Requests refused by `r` since the start.
+    pub fn refused_by(&self, r: Refusal) -> u64 {
+        self.counters.refused[r as usize].load(Ordering::Relaxed)
     }
 
     /// One request's token, or why not.

@@ -2,7 +2,7 @@
 //! request's `Authorization: Bearer <key>`.
 use super::caller::Caller;
 use super::keys;
-use super::quota::{Limits, Quota};
+use super::quota::{Limits, Quota, Refusal};
 use crate::store::{Store, StoreError};
 use parking_lot::RwLock;
 use serde::{Deserialize, Serialize};
@@ -226,25 +226,6 @@ impl Auth {
         v
     }
 
-    /// Per-tenant requests, frames added, requests in flight and refusals by limit (Prometheus).
-    pub fn render_metrics(&self) -> String {
-        let mut out = String::from(concat!(
-            "# HELP loopd_tenant_requests_total Writes and queries a tenant's key made (checked against its limits).\n",
-            "# TYPE loopd_tenant_requests_total counter\n",
-            "# HELP loopd_tenant_frames_added_total Frames a tenant stored.\n# TYPE loopd_tenant_frames_added_total counter\n",
-            "# HELP loopd_tenant_in_flight A tenant's requests being embedded or searched now.\n",
-            "# TYPE loopd_tenant_in_flight gauge\n",
-            "# HELP loopd_tenant_refused_total Requests refused by a tenant limit.\n# TYPE loopd_tenant_refused_total counter\n",
-        ));
-        let tenants = self.tenants.read();
-        let mut names: Vec<&String> = tenants.keys().collect();
-        names.sort();
-        for name in names {
-            tenants[name].1.render(name, &mut out);
-        }
-        out
-    }
-
     /// Revokes a tenant's key, by tenant name or key id; its sessions stay.
     pub async fn revoke(&self, name_or_key_id: &str) -> Result<TenantInfo, AuthError> {
         let found =
@@ -263,6 +244,60 @@ impl Auth {
     async fn save(&self, r: &TenantRecord) -> Result<(), AuthError> {
         let bytes = serde_json::to_vec(r).map_err(|e| AuthError::Store(StoreError::Storage(e.to_string())))?;
         self.store.put_tenant_durable(&r.name, &bytes).await?;
+        Ok(())
+    }
+}
+
+impl std::fmt::Debug for Auth {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Auth").field("tenants", &self.tenants.read().len()).finish_non_exhaustive()
+    }
+}
+
+/// Per-tenant requests, frames added, requests in flight and refusals by limit (`/metrics`).
+impl prometheus_client::collector::Collector for Auth {
+    fn encode(&self, mut encoder: prometheus_client::encoding::DescriptorEncoder) -> std::fmt::Result {
+        use prometheus_client::encoding::EncodeMetric;
+        use prometheus_client::metrics::{counter::ConstCounter, gauge::ConstGauge, MetricType};
+        let tenants = self.tenants.read();
+        let mut quotas: Vec<(&String, &Arc<Quota>)> = tenants.iter().map(|(n, (_, q))| (n, q)).collect();
+        quotas.sort_by_key(|(n, _)| *n);
+        type Sample = fn(&Quota) -> u64;
+        let counters: [(&str, &str, Sample); 2] = [
+            ("loopd_tenant_requests", "Writes and queries a tenant's key made (checked against its limits).", |q| {
+                q.counters.requests.load(std::sync::atomic::Ordering::Relaxed)
+            }),
+            ("loopd_tenant_frames_added", "Frames a tenant stored.", |q| {
+                q.counters.frames_added.load(std::sync::atomic::Ordering::Relaxed)
+            }),
+        ];
+        for (name, help, sample) in counters {
+            let mut family = encoder.encode_descriptor(name, help, None, MetricType::Counter)?;
+            for (tenant, q) in &quotas {
+                ConstCounter::new(sample(q)).encode(family.encode_family(&[("tenant", tenant.as_str())])?)?;
+            }
+        }
+        let mut family = encoder.encode_descriptor(
+            "loopd_tenant_in_flight",
+            "A tenant's requests being embedded or searched now.",
+            None,
+            MetricType::Gauge,
+        )?;
+        for (tenant, q) in &quotas {
+            ConstGauge::new(q.in_flight() as i64).encode(family.encode_family(&[("tenant", tenant.as_str())])?)?;
+        }
+        let mut family = encoder.encode_descriptor(
+            "loopd_tenant_refused",
+            "Requests refused by a tenant limit.",
+            None,
+            MetricType::Counter,
+        )?;
+        for (tenant, q) in &quotas {
+            for r in Refusal::ALL {
+                let labels = [("tenant", tenant.as_str()), ("limit", r.label())];
+                ConstCounter::new(q.refused_by(r)).encode(family.encode_family(&labels)?)?;
+            }
+        }
         Ok(())
     }
 }

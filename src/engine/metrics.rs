@@ -1,8 +1,14 @@
-//! Lock-free counters and histograms of the engine, rendered as Prometheus text.
-use std::fmt::Write;
+//! Lock-free counters and histograms of the engine, encoded for `/metrics` by prometheus-client
+//! (the engine's metrics are one `Collector`).
+use prometheus_client::collector::Collector;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric, NoLabelSet};
+use prometheus_client::metrics::counter::ConstCounter;
+use prometheus_client::metrics::gauge::ConstGauge;
+use prometheus_client::metrics::MetricType;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 
 /// A cumulative histogram with fixed upper bounds (Prometheus semantics).
+#[derive(Debug)]
 pub struct Histogram {
     bounds: &'static [f64],
     counts: Vec<AtomicU64>,
@@ -41,21 +47,25 @@ impl Histogram {
         self.counts.iter().zip(self.bounds).filter(|(c, _)| c.load(Relaxed) > 0).map(|(_, &b)| b).fold(0.0, f64::max)
     }
 
-    fn render(&self, out: &mut String, name: &str, help: &str) {
-        let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} histogram");
-        let mut cumulative = 0;
-        for (c, b) in self.counts.iter().zip(self.bounds) {
-            cumulative += c.load(Relaxed);
-            let _ = writeln!(out, "{name}_bucket{{le=\"{b}\"}} {cumulative}");
-        }
-        let _ = writeln!(out, "{name}_bucket{{le=\"+Inf\"}} {}", self.count());
-        let _ = writeln!(out, "{name}_sum {}\n{name}_count {}", self.sum(), self.count());
+    fn encode(&self, encoder: &mut DescriptorEncoder, name: &str, help: &str) -> std::fmt::Result {
+        // prometheus-client takes each bucket's own count (it sums them) and f64::MAX as +Inf.
+        let mut buckets: Vec<(f64, u64)> =
+            self.counts.iter().zip(self.bounds).map(|(c, &b)| (b, c.load(Relaxed))).collect();
+        let counted: u64 = buckets.iter().map(|(_, n)| n).sum();
+        buckets.push((f64::MAX, self.count().saturating_sub(counted)));
+        encoder.encode_descriptor(name, help, None, MetricType::Histogram)?.encode_histogram::<NoLabelSet>(
+            self.sum(),
+            self.count(),
+            &buckets,
+            None,
+        )
     }
 }
 
 const BATCH_BOUNDS: &[f64] = &[1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0];
 const SECONDS_BOUNDS: &[f64] = &[0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0];
 
+#[derive(Debug)]
 pub struct EngineMetrics {
     pub batch_size: Histogram,
     /// Time from admission (before decoding) to the start of the forward pass.
@@ -85,41 +95,34 @@ impl Default for EngineMetrics {
     }
 }
 
-impl EngineMetrics {
-    pub fn render_prometheus(&self) -> String {
-        let mut out = String::new();
-        let counter = |out: &mut String, name: &str, help: &str, v: u64| {
-            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
-        };
-        counter(&mut out, "loopd_engine_images_total", "Images embedded.", self.images.load(Relaxed));
-        counter(
-            &mut out,
-            "loopd_engine_rejected_total",
-            "Requests refused: queue full.",
-            self.rejected_overload.load(Relaxed),
-        );
-        counter(
-            &mut out,
-            "loopd_engine_cancelled_total",
-            "Requests dropped by their caller before the forward pass.",
-            self.cancelled.load(Relaxed),
-        );
-        counter(
-            &mut out,
-            "loopd_engine_failed_total",
-            "Requests whose forward pass failed.",
-            self.failed.load(Relaxed),
-        );
-        let _ = writeln!(
-            out,
-            "# HELP loopd_engine_queue_depth Requests admitted and not yet answered.\n# TYPE loopd_engine_queue_depth gauge\nloopd_engine_queue_depth {}",
-            self.queued.load(Relaxed)
-        );
+impl Collector for EngineMetrics {
+    fn encode(&self, mut encoder: DescriptorEncoder) -> std::fmt::Result {
+        for (name, help, v) in [
+            ("loopd_engine_images", "Images embedded.", &self.images),
+            ("loopd_engine_rejected", "Requests refused: queue full.", &self.rejected_overload),
+            ("loopd_engine_cancelled", "Requests dropped by their caller before the forward pass.", &self.cancelled),
+            ("loopd_engine_failed", "Requests whose forward pass failed.", &self.failed),
+        ] {
+            let counter = ConstCounter::new(v.load(Relaxed));
+            counter.encode(encoder.encode_descriptor(name, help, None, counter.metric_type())?)?;
+        }
+        let queued = ConstGauge::new(self.queued.load(Relaxed) as i64);
+        queued.encode(encoder.encode_descriptor(
+            "loopd_engine_queue_depth",
+            "Requests admitted and not yet answered.",
+            None,
+            queued.metric_type(),
+        )?)?;
         let rate = self.images.load(Relaxed) as f64 / self.started.elapsed().as_secs_f64().max(1e-9);
-        let _ = writeln!(out, "# HELP loopd_engine_images_per_second Images embedded per second since start.\n# TYPE loopd_engine_images_per_second gauge\nloopd_engine_images_per_second {rate}");
-        self.batch_size.render(&mut out, "loopd_engine_batch_size", "Images per forward pass.");
-        self.queue_wait.render(&mut out, "loopd_engine_queue_wait_seconds", "Admission to forward pass start.");
-        self.forward_seconds.render(&mut out, "loopd_engine_forward_seconds", "Forward pass duration.");
-        out
+        let rate = ConstGauge::new(rate);
+        rate.encode(encoder.encode_descriptor(
+            "loopd_engine_images_per_second",
+            "Images embedded per second since start.",
+            None,
+            rate.metric_type(),
+        )?)?;
+        self.batch_size.encode(&mut encoder, "loopd_engine_batch_size", "Images per forward pass.")?;
+        self.queue_wait.encode(&mut encoder, "loopd_engine_queue_wait_seconds", "Admission to forward pass start.")?;
+        self.forward_seconds.encode(&mut encoder, "loopd_engine_forward_seconds", "Forward pass duration.")
     }
 }

@@ -160,7 +160,7 @@ impl Engine {
         &self.info
     }
 
-    pub fn metrics(&self) -> &EngineMetrics {
+    pub fn metrics(&self) -> &Arc<EngineMetrics> {
         &self.metrics
     }
 

@@ -82,15 +82,10 @@ async fn ready(State(s): State<Arc<AppState>>) -> Result<&'static str, ApiError>
     }
 }
 
-async fn metrics(State(s): State<Arc<AppState>>) -> impl IntoResponse {
-    let mut body = s.service.engine.metrics().render_prometheus();
-    body.push_str(&s.auth.render_metrics());
-    body.push_str(&s.connections.render_metrics());
-    let not_kept = s.service.loops_not_kept.load(std::sync::atomic::Ordering::Relaxed);
-    body.push_str(&format!(
-        "# HELP loopd_loops_not_kept_total Answers whose loop candidates could not be kept.\n# TYPE loopd_loops_not_kept_total counter\nloopd_loops_not_kept_total {not_kept}\n"
-    ));
-    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], body)
+async fn metrics(State(s): State<Arc<AppState>>) -> Result<impl IntoResponse, ApiError> {
+    let body = crate::api::metrics::encode(&s.metrics)
+        .map_err(|e| ApiError::Internal(format!("encoding the metrics failed: {e}")))?;
+    Ok(([(header::CONTENT_TYPE, crate::api::metrics::CONTENT_TYPE)], body))
 }
 
 #[derive(Serialize)]

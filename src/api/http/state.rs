@@ -14,8 +14,8 @@ pub struct AppState {
     pub auth: Arc<Auth>,
     /// Offline sequence jobs; they call the service.
     pub jobs: Arc<Jobs>,
-    /// Both listeners' connection limits and what is open (`/metrics`).
-    pub connections: Arc<crate::api::conn::Connections>,
+    /// Every layer's counters (`/metrics`).
+    pub metrics: Arc<prometheus_client::registry::Registry>,
 }
 
 /// A stored frame as HTTP answers it (one frame, or each of a listing's).

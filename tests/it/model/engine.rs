@@ -136,7 +136,10 @@ async fn bad_images_are_refused_by_the_engine_and_it_keeps_serving() {
     assert!(matches!(err, Err(EngineError::Image(_))), "{err:?}");
     let f = corridor_frames(1).pop().unwrap();
     assert!(engine.embed_image(f, Variant::FULL).await.is_ok());
-    let text = engine.metrics().render_prometheus();
+    let mut registry = prometheus_client::registry::Registry::default();
+    registry.register_collector(Box::new(engine.metrics().clone()));
+    let mut text = String::new();
+    prometheus_client::encoding::text::encode(&mut text, &registry).unwrap();
     assert!(text.contains("loopd_engine_images_total 1"), "{text}");
-    assert!(text.contains("loopd_engine_batch_size_bucket{le=\"1\"} 1"), "{text}");
+    assert!(text.contains("loopd_engine_batch_size_bucket{le=\"1.0\"} 1"), "{text}");
 }

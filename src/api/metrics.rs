@@ -1,0 +1,53 @@
+//! `/metrics`: one prometheus-client registry per server, each layer's counters a `Collector`
+//! of its own (the engine's queue and forward passes, the tenants' quotas, the listeners'
+//! connections, the loops not kept), encoded as OpenMetrics text on each scrape.
+use super::conn::Connections;
+use crate::auth::Auth;
+use crate::engine::metrics::EngineMetrics;
+use prometheus_client::collector::Collector;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
+use prometheus_client::metrics::counter::ConstCounter;
+use prometheus_client::registry::Registry;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::Arc;
+
+/// Answers whose loop candidates could not be kept (the service counts them).
+#[derive(Debug)]
+struct LoopsNotKept(Arc<AtomicU64>);
+
+impl Collector for LoopsNotKept {
+    fn encode(&self, mut encoder: DescriptorEncoder) -> std::fmt::Result {
+        let counter = ConstCounter::new(self.0.load(Relaxed));
+        counter.encode(encoder.encode_descriptor(
+            "loopd_loops_not_kept",
+            "Answers whose loop candidates could not be kept.",
+            None,
+            counter.metric_type(),
+        )?)
+    }
+}
+
+/// The server's registry.
+pub fn registry(
+    engine: Arc<EngineMetrics>,
+    auth: Arc<Auth>,
+    connections: Arc<Connections>,
+    loops_not_kept: Arc<AtomicU64>,
+) -> Registry {
+    let mut r = Registry::default();
+    r.register_collector(Box::new(engine));
+    r.register_collector(Box::new(auth));
+    r.register_collector(Box::new(connections));
+    r.register_collector(Box::new(LoopsNotKept(loops_not_kept)));
+    r
+}
+
+/// The OpenMetrics text of a registry, `# EOF` last.
+pub fn encode(r: &Registry) -> Result<String, std::fmt::Error> {
+    let mut text = String::new();
+    prometheus_client::encoding::text::encode(&mut text, r)?;
+    Ok(text)
+}
+
+/// The content type of [`encode`]'s text.
+pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
