@@ -153,7 +153,10 @@ async fn churn(url: String, sessions: usize, every: Duration, stop: Arc<AtomicBo
 }
 
 fn plot(rows: &[Row], path: &Path) -> anyhow::Result<()> {
-    let root = BitMapBackend::new(path, (1100, 800)).into_drawing_area();
+    loopd::eval::plots::png(path, (1100, 800), |root| panels(rows, root))
+}
+
+fn panels(rows: &[Row], root: &loopd::eval::plots::Canvas<'_>) -> anyhow::Result<()> {
     root.fill(&WHITE)?;
     let areas = root.split_evenly((2, 2));
     let end = rows.last().map_or(1.0, |r| r.minute).max(1.0);
@@ -188,7 +191,6 @@ fn plot(rows: &[Row], path: &Path) -> anyhow::Result<()> {
         }
         chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw()?;
     }
-    root.present()?;
     Ok(())
 }
 

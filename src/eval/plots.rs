@@ -8,6 +8,23 @@ fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
     anyhow!("plotting: {e}")
 }
 
+/// The area a figure is drawn on.
+pub type Canvas<'a> = DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>;
+
+/// A `size` RGB picture drawn by `draw` into memory, then written to `path` as PNG (by the
+/// `image` crate the rest of loopd decodes with). Every figure of loopd's (and the benches') is
+/// made here.
+pub fn png(path: &Path, size: (u32, u32), draw: impl FnOnce(&Canvas<'_>) -> Result<()>) -> Result<()> {
+    let mut pixels = vec![0u8; size.0 as usize * size.1 as usize * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut pixels, size).into_drawing_area();
+        draw(&root)?;
+        root.present().map_err(err)?;
+    }
+    image::save_buffer_with_format(path, &pixels, size.0, size.1, image::ColorType::Rgb8, image::ImageFormat::Png)
+        .map_err(|e| anyhow!("writing {}: {e}", path.display()))
+}
+
 /// Precision against recall, one point per threshold, with R@100P marked in the title.
 pub fn pr_curve(path: &Path, curves: &[(String, Vec<PrPoint>)], title: &str) -> Result<()> {
     let series: Vec<(String, Vec<(f64, f64)>)> = curves
@@ -51,9 +68,18 @@ fn line_chart(
     series: &[(String, Vec<(f64, f64)>)],
     extras: Extras,
 ) -> Result<()> {
-    let root = BitMapBackend::new(path, axes.size).into_drawing_area();
+    png(path, axes.size, |root| line_chart_on(root, title, axes, series, extras))
+}
+
+fn line_chart_on(
+    root: &Canvas<'_>,
+    title: &str,
+    axes: Axes,
+    series: &[(String, Vec<(f64, f64)>)],
+    extras: Extras,
+) -> Result<()> {
     root.fill(&WHITE).map_err(err)?;
-    let mut chart = ChartBuilder::on(&root)
+    let mut chart = ChartBuilder::on(root)
         .caption(title, ("sans-serif", 22))
         .margin(15)
         .x_label_area_size(45)
@@ -80,7 +106,6 @@ fn line_chart(
         labels.position(SeriesLabelPosition::UpperLeft);
     }
     labels.background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(err)?;
-    root.present().map_err(err)?;
     Ok(())
 }
 
@@ -88,7 +113,16 @@ fn line_chart(
 /// a side; brighter is more similar. Ground-truth loops are drawn as green dots when given.
 pub fn similarity(path: &Path, scores: &[f32], rows: usize, cols: usize, truth: &[(usize, usize)]) -> Result<()> {
     let (w, h) = (cols.clamp(1, 800), rows.clamp(1, 800));
-    let root = BitMapBackend::new(path, (w as u32, h as u32)).into_drawing_area();
+    png(path, (w as u32, h as u32), |root| similarity_on(root, (w, h), scores, (rows, cols), truth))
+}
+
+fn similarity_on(
+    root: &Canvas<'_>,
+    (w, h): (usize, usize),
+    scores: &[f32],
+    (rows, cols): (usize, usize),
+    truth: &[(usize, usize)],
+) -> Result<()> {
     root.fill(&BLACK).map_err(err)?;
     let (lo, hi) = scores.iter().fold((f32::MAX, f32::MIN), |(a, b), &s| (a.min(s), b.max(s)));
     let span = (hi - lo).max(1e-6);
@@ -111,7 +145,6 @@ pub fn similarity(path: &Path, scores: &[f32], rows: usize, cols: usize, truth: 
             root.draw_pixel(((r * w / cols) as i32, (q * h / rows) as i32), &GREEN).map_err(err)?;
         }
     }
-    root.present().map_err(err)?;
     Ok(())
 }
 
