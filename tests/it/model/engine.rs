@@ -46,20 +46,22 @@ async fn sixty_four_concurrent_callers_each_get_their_own_descriptor() {
             tokio::spawn(async move { e.embed_image(f, Variant::FULL).await })
         })
         .collect();
-    // Frames a robot takes while standing still are one picture to the network: a batch's
-    // rounding (about 1e-5) may rank such a twin above the frame itself, and a mix-up between
-    // twins cannot be seen. Every other mix-up fails, and most frames must have no twin.
-    let twins = |i: usize, j: usize| i == j || cos(&alone[i], &alone[j]) >= 0.9999;
-    let distinct = (0..alone.len()).filter(|&i| (0..alone.len()).all(|j| j == i || !twins(i, j))).count();
-    assert!(distinct >= alone.len() / 2, "only {distinct} of {} frames are told apart alone", alone.len());
+    // A wrong descriptor for one frame (CI's run of 453a5b9 here, docs/ci.md) is named as such.
+    for (k, d) in alone.iter().enumerate() {
+        assert!(d.iter().all(|x| x.is_finite()), "frame {k} embedded alone has a non-finite descriptor");
+    }
     for (i, t) in tasks.into_iter().enumerate() {
         let d = t.await.unwrap().unwrap();
+        assert!(d.iter().all(|x| x.is_finite()), "caller {i} got a non-finite descriptor");
         let own = cos(&d, &alone[i]);
         assert!(own >= 0.9999, "caller {i}: cosine to its own frame alone is {own}");
         let best = (0..alone.len()).max_by(|&a, &b| cos(&d, &alone[a]).total_cmp(&cos(&d, &alone[b]))).unwrap();
-        assert!(
-            twins(best, i),
-            "caller {i} got a descriptor closest to frame {best} (cosine {} between the two frames alone)",
+        assert_eq!(
+            best,
+            i,
+            "caller {i} got a descriptor closest to frame {best} (cosines {own} to its own, {} to frame {best}, {} \
+             between the two alone)",
+            cos(&d, &alone[best]),
             cos(&alone[i], &alone[best])
         );
     }
