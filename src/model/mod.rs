@@ -146,24 +146,35 @@ impl Model {
         self.net.descriptor(&channels_last(x), v)
     }
 
-    /// Sets every attention/fusion parameter to seeded random values (tests, benchmarks).
+    /// Sets every attention/fusion parameter to seeded random values (tests, benchmarks): the
+    /// same seed gives the same network in every run. The values come from a generator of its
+    /// own, drawn in the order of the parameters' names: libtorch's global generator is shared by
+    /// every thread of a process (tests running beside each other draw from it too), and the
+    /// variable store's map has no fixed order.
     pub fn randomize(&self, seed: i64, heads_only: bool) {
-        tch::manual_seed(seed);
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed as u64);
+        let mut vars: Vec<(String, Tensor)> = self.vs.variables().into_iter().collect();
+        vars.sort_by(|a, b| a.0.cmp(&b.0));
         tch::no_grad(|| {
-            for (name, mut t) in self.vs.variables() {
+            for (name, mut t) in vars {
                 let head = network::HEAD_PREFIXES.iter().any(|p| name.starts_with(p));
                 if heads_only && !head {
                     continue;
                 }
-                let fan_in: i64 = t.size().iter().skip(1).product::<i64>().max(1);
-                let r = if name.ends_with("running_var") {
-                    Tensor::rand_like(&t) + 0.5
-                } else if t.dim() == 1 {
-                    Tensor::randn_like(&t) * 0.1
+                let n = t.numel();
+                let values: Vec<f32> = if name.ends_with("running_var") {
+                    (0..n).map(|_| rng.random::<f32>() + 0.5).collect()
+                } else if t.dim() == 1 && name.ends_with(".weight") {
+                    // Batch-norm scales near 1: at ~0 (as the other 1-d values) every residual
+                    // branch is silenced and the output hardly depends on the input.
+                    (0..n).map(|_| 1.0 + 0.1 * rng.sample::<f32, _>(rand_distr::StandardNormal)).collect()
                 } else {
-                    Tensor::randn_like(&t) * (1.0 / fan_in as f64).sqrt()
+                    let fan_in: i64 = t.size().iter().skip(1).product::<i64>().max(1);
+                    let sd = if t.dim() == 1 { 0.1 } else { (1.0 / fan_in as f32).sqrt() };
+                    (0..n).map(|_| sd * rng.sample::<f32, _>(rand_distr::StandardNormal)).collect()
                 };
-                t.copy_(&r);
+                t.copy_(&Tensor::from_slice(&values).reshape(t.size()));
             }
         });
     }
