@@ -165,14 +165,16 @@ impl Model {
                 let n = t.numel();
                 let values: Vec<f32> = if name.ends_with("running_var") {
                     (0..n).map(|_| rng.random::<f32>() + 0.5).collect()
-                } else if t.dim() == 1 && name.ends_with(".weight") {
-                    // Batch-norm scales near 1: at ~0 (as the other 1-d values) every residual
-                    // branch is silenced and the output hardly depends on the input.
-                    (0..n).map(|_| 1.0 + 0.1 * rng.sample::<f32, _>(rand_distr::StandardNormal)).collect()
                 } else {
-                    let fan_in: i64 = t.size().iter().skip(1).product::<i64>().max(1);
-                    let sd = if t.dim() == 1 { 0.1 } else { (1.0 / fan_in as f32).sqrt() };
-                    (0..n).map(|_| sd * rng.sample::<f32, _>(rand_distr::StandardNormal)).collect()
+                    // Normals: batch-norm scales near 1 (near 0, as the other 1-d values, every
+                    // residual branch is silenced and the output hardly depends on the input),
+                    // other 1-d values near 0, weights scaled by their fan-in.
+                    let (mean, sd) = match (t.dim(), name.ends_with(".weight")) {
+                        (1, true) => (1.0, 0.1),
+                        (1, false) => (0.0, 0.1),
+                        _ => (0.0, (1.0 / t.size().iter().skip(1).product::<i64>().max(1) as f32).sqrt()),
+                    };
+                    (0..n).map(|_| mean + sd * rng.sample::<f32, _>(rand_distr::StandardNormal)).collect()
                 };
                 t.copy_(&Tensor::from_slice(&values).reshape(t.size()));
             }
