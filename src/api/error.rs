@@ -68,6 +68,17 @@ impl From<EngineError> for ApiError {
     }
 }
 
+impl From<crate::verify::VerifyError> for ApiError {
+    fn from(e: crate::verify::VerifyError) -> Self {
+        use crate::verify::VerifyError;
+        let msg = e.to_string();
+        match e {
+            VerifyError::Invalid(_) => ApiError::InvalidArgument(msg),
+            VerifyError::Corrupt(_) | VerifyError::Failed(_) => ApiError::Internal(msg),
+        }
+    }
+}
+
 impl From<crate::index::query::InvalidQuery> for ApiError {
     fn from(e: crate::index::query::InvalidQuery) -> Self {
         ApiError::InvalidArgument(e.0)

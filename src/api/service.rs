@@ -392,7 +392,7 @@ impl LoopService {
         let embed = self.engine.embed_image(bytes.clone(), Variant::FULL);
         let extract = async {
             match features {
-                true => self.verifier.extract(bytes.clone(), limits).await.map_err(|e| format!("no features: {e}")),
+                true => self.verifier.extract(bytes.clone(), limits).await.map_err(no_features),
                 false => Err("feature extraction is off".to_string()),
             }
         };
@@ -528,12 +528,13 @@ impl LoopService {
         for (i, m) in matches.into_iter().enumerate() {
             let wanted = i < checked && matches!(query, Some(Ok(_)));
             let stored = if wanted { s.features(m.frame_id)? } else { None };
-            candidates.push((m, stored.and_then(|b| Features::decode(&b).ok())));
+            let features = stored.and_then(|b| stored_features(&s.meta.id, m.frame_id, &b));
+            candidates.push((m, features));
         }
         let camera = s.meta.camera.as_ref().map(intrinsics);
         let params = VerifyParams { min_inliers: v.min_inliers, ..Default::default() };
         let checks = Checks { checked, camera, params, seq, places, calibrator };
-        let mut out = self.verifier.check(query, candidates, checks).await.map_err(ApiError::Internal)?;
+        let mut out = self.verifier.check(query, candidates, checks).await?;
         out.retain(|m| m.confidence.is_none_or(|c| c >= q.min_confidence));
         out.truncate(q.k);
         Ok((out, votes))
@@ -558,7 +559,7 @@ impl LoopService {
         self.check_confidence(&s, &q)?;
         match target {
             QueryTarget::Frame(id) => {
-                let stored = s.features(id)?.and_then(|b| Features::decode(&b).ok());
+                let stored = s.features(id)?.and_then(|b| stored_features(&s.meta.id, id, &b));
                 let features = match stored {
                     Some(f) => QueryFeatures::Some(Arc::new(f)),
                     None => QueryFeatures::None("the query frame has no stored features".into()),
@@ -612,5 +613,23 @@ impl LoopService {
         // Its best matches by descriptor: the candidates it votes for in later sequence checks.
         s.set_votes(id, votes);
         Ok((id, matches))
+    }
+}
+
+/// Why a query has no features, as its answers say (the image still embeds: an image ORB cannot
+/// use is answered unverified, not refused).
+pub(crate) fn no_features(e: crate::verify::VerifyError) -> String {
+    format!("no features: {e}")
+}
+
+/// A frame's stored feature record, or None (logged) where it does not decode: that frame is
+/// answered unverified rather than failing the query.
+fn stored_features(session: &str, frame: u64, blob: &[u8]) -> Option<Features> {
+    match Features::decode(blob) {
+        Ok(f) => Some(f),
+        Err(e) => {
+            tracing::warn!(session, frame, error = %e, "stored features do not decode: the frame is not verified");
+            None
+        }
     }
 }

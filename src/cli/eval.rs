@@ -103,7 +103,7 @@ fn parse_intrinsics(s: &str) -> Result<Intrinsics, String> {
         [fx, fy, cx, cy, k1, k2, p1, p2, k3] => Intrinsics { fx, fy, cx, cy, dist: Some([k1, k2, p1, p2, k3]) },
         _ => return Err(format!("expected 4 or 9 numbers, got {}", v.len())),
     };
-    k.validate()?;
+    k.validate().map_err(|e| e.to_string())?;
     Ok(k)
 }
 

@@ -418,7 +418,7 @@ fn extract_all(files: &[PathBuf], label: &str) -> Result<Vec<Result<Features, St
     let one = |p: &PathBuf| {
         let r = std::fs::read(p)
             .map_err(|e| format!("{}: {e}", p.display()))
-            .and_then(|b| from_image_bytes(&b, &limits, &params));
+            .and_then(|b| from_image_bytes(&b, &limits, &params).map_err(|e| e.to_string()));
         bar.inc(1);
         r
     };

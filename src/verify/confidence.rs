@@ -186,10 +186,17 @@ impl Calibrator {
     /// Logistic regression by Newton's method (a tiny ridge, 1e-6 per sample, keeps the solve
     /// well posed), the weights of evidence features projected onto >= 0 after each step;
     /// `loop_confidence` from the fitted scores.
-    pub fn fit(descriptor_id: &str, samples: &[Sample], trained_on: Vec<String>) -> Result<Self, String> {
+    pub fn fit(
+        descriptor_id: &str,
+        samples: &[Sample],
+        trained_on: Vec<String>,
+    ) -> Result<Self, super::error::VerifyError> {
         let positives = samples.iter().filter(|s| s.truth).count();
         if positives == 0 || positives == samples.len() {
-            return Err(format!("{} samples, {positives} positive: a fit needs both kinds", samples.len()));
+            return Err(super::error::VerifyError::Invalid(format!(
+                "{} samples, {positives} positive: a fit needs both kinds",
+                samples.len()
+            )));
         }
         const D: usize = FEATURES + 1;
         let rows: Vec<([f64; D], f64)> = samples
@@ -236,7 +243,10 @@ impl Calibrator {
                 }
                 a[(r, r)] += 1e-9;
             }
-            let step = a.cholesky().ok_or("the fit's Hessian is singular")?.solve(&b);
+            let step = a
+                .cholesky()
+                .ok_or_else(|| super::error::VerifyError::Failed("the fit's Hessian is singular".into()))?
+                .solve(&b);
             let mut change = 0f64;
             for (r, &i) in idx.iter().enumerate() {
                 let mut next = w[i] - step[r];

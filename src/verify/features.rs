@@ -8,6 +8,7 @@ use opencv::features2d::{ORB_ScoreType, ORB};
 use opencv::imgproc;
 use opencv::prelude::*;
 
+use super::error::VerifyError;
 use crate::model::preprocess::{decode, ImageLimits};
 
 /// Bytes per ORB descriptor (256 bits).
@@ -65,12 +66,16 @@ impl Features {
     }
 
     /// Checks the invariants that `extract`/`decode` guarantee (fields are public).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), VerifyError> {
         if self.points.len() != self.descriptors.len() {
-            return Err(format!("features: {} points but {} descriptors", self.points.len(), self.descriptors.len()));
+            return Err(VerifyError::Corrupt(format!(
+                "features: {} points but {} descriptors",
+                self.points.len(),
+                self.descriptors.len()
+            )));
         }
         if let Some(p) = self.points.iter().find(|p| !p[0].is_finite() || !p[1].is_finite()) {
-            return Err(format!("features: non-finite keypoint ({}, {})", p[0], p[1]));
+            return Err(VerifyError::Corrupt(format!("features: non-finite keypoint ({}, {})", p[0], p[1])));
         }
         Ok(())
     }
@@ -100,25 +105,31 @@ impl Features {
         out
     }
 
-    pub fn decode(b: &[u8]) -> Result<Self, String> {
+    pub fn decode(b: &[u8]) -> Result<Self, VerifyError> {
         if b.len() < HEADER_BYTES {
-            return Err(format!("features blob too short: {} bytes, header needs {HEADER_BYTES}", b.len()));
+            return Err(VerifyError::Corrupt(format!(
+                "features blob too short: {} bytes, header needs {HEADER_BYTES}",
+                b.len()
+            )));
         }
         if &b[0..4] != MAGIC {
-            return Err("features blob: bad magic (expected \"ORB1\")".into());
+            return Err(VerifyError::Corrupt("features blob: bad magic (expected \"ORB1\")".into()));
         }
         let width = read_u32(b, 4);
         let height = read_u32(b, 8);
         let n = read_u32(b, 12) as usize;
         if width == 0 || height == 0 {
-            return Err(format!("features blob: invalid image size {width}x{height}"));
+            return Err(VerifyError::Corrupt(format!("features blob: invalid image size {width}x{height}")));
         }
         if n > MAX_FEATURES {
-            return Err(format!("features blob: {n} features exceeds limit {MAX_FEATURES}"));
+            return Err(VerifyError::Corrupt(format!("features blob: {n} features exceeds limit {MAX_FEATURES}")));
         }
         let expected = Self::encoded_len(n);
         if b.len() != expected {
-            return Err(format!("features blob: {} bytes, expected {expected} for {n} features", b.len()));
+            return Err(VerifyError::Corrupt(format!(
+                "features blob: {} bytes, expected {expected} for {n} features",
+                b.len()
+            )));
         }
         let pts = &b[HEADER_BYTES..HEADER_BYTES + 4 * n];
         let points = pts
@@ -158,22 +169,28 @@ fn dequantize(q: u16, side: u32) -> f32 {
 }
 
 /// Extracts ORB features from an 8-bit grayscale buffer (row-major, no padding).
-pub fn extract(gray: &[u8], width: u32, height: u32, p: &FeatureParams) -> Result<Features, String> {
+pub fn extract(gray: &[u8], width: u32, height: u32, p: &FeatureParams) -> Result<Features, VerifyError> {
     let expected = (width as usize)
         .checked_mul(height as usize)
-        .ok_or_else(|| format!("image size {width}x{height} overflows"))?;
+        .ok_or_else(|| VerifyError::Invalid(format!("image size {width}x{height} overflows")))?;
     if width == 0 || height == 0 {
-        return Err(format!("empty image ({width}x{height})"));
+        return Err(VerifyError::Invalid(format!("empty image ({width}x{height})")));
     }
     if gray.len() != expected {
-        return Err(format!("grayscale buffer is {} bytes, expected {expected} for {width}x{height}", gray.len()));
+        return Err(VerifyError::Invalid(format!(
+            "grayscale buffer is {} bytes, expected {expected} for {width}x{height}",
+            gray.len()
+        )));
     }
     if p.max_features == 0 || p.max_features > MAX_FEATURES {
-        return Err(format!("max_features must be in 1..={MAX_FEATURES}, got {}", p.max_features));
+        return Err(VerifyError::Invalid(format!(
+            "max_features must be in 1..={MAX_FEATURES}, got {}",
+            p.max_features
+        )));
     }
-    let rows = i32::try_from(height).map_err(|_| format!("image height {height} too large"))?;
-    let cols = i32::try_from(width).map_err(|_| format!("image width {width} too large"))?;
-    extract_cv(gray, rows, cols, p).map_err(|e| format!("ORB extraction failed: {e}"))
+    let rows = i32::try_from(height).map_err(|_| VerifyError::Invalid(format!("image height {height} too large")))?;
+    let cols = i32::try_from(width).map_err(|_| VerifyError::Invalid(format!("image width {width} too large")))?;
+    extract_cv(gray, rows, cols, p).map_err(|e| VerifyError::Failed(format!("ORB extraction failed: {e}")))
 }
 
 fn extract_cv(gray: &[u8], rows: i32, cols: i32, p: &FeatureParams) -> opencv::Result<Features> {
@@ -251,8 +268,8 @@ fn orb(
 
 /// Features of an encoded image (any format and depth the model takes), decoded under the same
 /// limits as the model's input: the server and `loopd eval` both extract through this.
-pub fn from_image_bytes(bytes: &[u8], limits: &ImageLimits, p: &FeatureParams) -> Result<Features, String> {
-    let rgb = decode(bytes, limits).map_err(|e| e.to_string())?;
+pub fn from_image_bytes(bytes: &[u8], limits: &ImageLimits, p: &FeatureParams) -> Result<Features, VerifyError> {
+    let rgb = decode(bytes, limits).map_err(|e| VerifyError::Invalid(e.to_string()))?;
     let gray = image::imageops::grayscale(&rgb);
     let (w, h) = gray.dimensions();
     extract(gray.as_raw(), w, h, p)

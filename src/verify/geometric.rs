@@ -12,6 +12,7 @@ use opencv::core::{self, DMatch, Mat, Point2f, TermCriteria, Vector};
 use opencv::features2d::BFMatcher;
 use opencv::prelude::*;
 
+use super::error::VerifyError;
 use super::features::{Features, DESCRIPTOR_BYTES};
 
 /// Fewer correspondences than this cannot constrain F (8-point) robustly.
@@ -33,16 +34,22 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), VerifyError> {
         if !(self.fx.is_finite() && self.fy.is_finite() && self.fx > 0.0 && self.fy > 0.0) {
-            return Err(format!("invalid intrinsics: fx={} fy={} must be finite and > 0", self.fx, self.fy));
+            return Err(VerifyError::Invalid(format!(
+                "invalid intrinsics: fx={} fy={} must be finite and > 0",
+                self.fx, self.fy
+            )));
         }
         if !(self.cx.is_finite() && self.cy.is_finite()) {
-            return Err(format!("invalid intrinsics: cx={} cy={} must be finite", self.cx, self.cy));
+            return Err(VerifyError::Invalid(format!(
+                "invalid intrinsics: cx={} cy={} must be finite",
+                self.cx, self.cy
+            )));
         }
         if let Some(d) = self.dist {
             if d.iter().any(|v| !v.is_finite()) {
-                return Err(format!("invalid intrinsics: distortion {d:?} must be finite"));
+                return Err(VerifyError::Invalid(format!("invalid intrinsics: distortion {d:?} must be finite")));
             }
         }
         Ok(())
@@ -183,19 +190,22 @@ fn ratio_of(a: usize, b: usize) -> f32 {
 pub fn verify(query: &Features, candidate: &Features, intr: Option<&Intrinsics>, p: &VerifyParams) -> Verification {
     match verify_inner(query, candidate, intr, p) {
         Ok(v) => v,
-        Err(reason) => Verification::rejected(0, 0, reason),
+        Err(reason) => Verification::rejected(0, 0, reason.to_string()),
     }
 }
 
-fn check_params(p: &VerifyParams) -> Result<(), String> {
+fn check_params(p: &VerifyParams) -> Result<(), VerifyError> {
     if !(p.ratio > 0.0 && p.ratio <= 1.0) {
-        return Err(format!("invalid params: ratio {} must be in (0, 1]", p.ratio));
+        return Err(VerifyError::Invalid(format!("invalid params: ratio {} must be in (0, 1]", p.ratio)));
     }
     if !(p.ransac_threshold_px.is_finite() && p.ransac_threshold_px > 0.0) {
-        return Err(format!("invalid params: ransac_threshold_px {} must be > 0", p.ransac_threshold_px));
+        return Err(VerifyError::Invalid(format!(
+            "invalid params: ransac_threshold_px {} must be > 0",
+            p.ransac_threshold_px
+        )));
     }
     if !(p.confidence > 0.0 && p.confidence < 1.0) {
-        return Err(format!("invalid params: confidence {} must be in (0, 1)", p.confidence));
+        return Err(VerifyError::Invalid(format!("invalid params: confidence {} must be in (0, 1)", p.confidence)));
     }
     Ok(())
 }
@@ -205,22 +215,26 @@ fn verify_inner(
     c: &Features,
     intr: Option<&Intrinsics>,
     p: &VerifyParams,
-) -> Result<Verification, String> {
+) -> Result<Verification, VerifyError> {
     check_params(p)?;
-    q.validate().map_err(|e| format!("query {e}"))?;
-    c.validate().map_err(|e| format!("candidate {e}"))?;
+    q.validate().map_err(|e| e.context("query "))?;
+    c.validate().map_err(|e| e.context("candidate "))?;
     if let Some(k) = intr {
         k.validate()?;
         // One intrinsics set is only meaningful if both frames come from the same sensor mode.
         if (q.width, q.height) != (c.width, c.height) {
-            return Err(format!(
+            return Err(VerifyError::Invalid(format!(
                 "image sizes differ ({}x{} vs {}x{}) but one set of intrinsics was given",
                 q.width, q.height, c.width, c.height
-            ));
+            )));
         }
     }
     if q.len() > MAX_POINTS || c.len() > MAX_POINTS {
-        return Err(format!("too many features (query {}, candidate {}; limit {MAX_POINTS})", q.len(), c.len()));
+        return Err(VerifyError::Invalid(format!(
+            "too many features (query {}, candidate {}; limit {MAX_POINTS})",
+            q.len(),
+            c.len()
+        )));
     }
     if q.len() < MIN_POINTS || c.len() < MIN_POINTS {
         return Ok(Verification::rejected(
@@ -245,14 +259,21 @@ fn verify_inner(
     }
 
     let (mut mask, pose) = match intr {
-        None => (fundamental_inliers(&pc, &pq, p).map_err(|e| format!("fundamental RANSAC failed: {e}"))?, None),
-        Some(k) => essential_pose(&pc, &pq, k, p).map_err(|e| format!("essential RANSAC failed: {e}"))?,
+        None => (
+            fundamental_inliers(&pc, &pq, p)
+                .map_err(|e| VerifyError::Failed(format!("fundamental RANSAC failed: {e}")))?,
+            None,
+        ),
+        Some(k) => {
+            essential_pose(&pc, &pq, k, p).map_err(|e| VerifyError::Failed(format!("essential RANSAC failed: {e}")))?
+        }
     };
     // Zero baseline, pure rotation or a planar scene make F/E degenerate, and USAC then rejects
     // the model (identical images give 0 inliers). Such views are still consistent under a
     // homography, which is a valid verification; the pose is then left out (t undefined).
     if count(&mask) < p.min_inliers {
-        let h = homography_inliers(&pc, &pq, p).map_err(|e| format!("homography RANSAC failed: {e}"))?;
+        let h = homography_inliers(&pc, &pq, p)
+            .map_err(|e| VerifyError::Failed(format!("homography RANSAC failed: {e}")))?;
         if count(&h) >= p.min_inliers {
             mask = h;
         }
@@ -318,10 +339,10 @@ struct Knn2 {
 }
 
 /// Returns (query index, candidate index) pairs that pass the ratio test, one per candidate keypoint.
-fn ratio_matches(q: &Features, c: &Features, ratio: f32, matcher: Matcher) -> Result<Vec<(usize, usize)>, String> {
+fn ratio_matches(q: &Features, c: &Features, ratio: f32, matcher: Matcher) -> Result<Vec<(usize, usize)>, VerifyError> {
     let knn = match matcher {
         Matcher::Scan => knn2_scan(q, c),
-        Matcher::OpenCv => knn2_opencv(q, c).map_err(|e| format!("BFMatcher failed: {e}"))?,
+        Matcher::OpenCv => knn2_opencv(q, c).map_err(|e| VerifyError::Failed(format!("BFMatcher failed: {e}")))?,
     };
     // Best query match per candidate keypoint: duplicates would inflate the inlier count.
     let mut best: Vec<Option<(usize, u32)>> = vec![None; c.len()];

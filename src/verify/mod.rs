@@ -4,6 +4,7 @@
 //! ([`confidence`]). The server (`api::service`) and `loopd eval` both go through [`check`], so
 //! they give the same verified matches and the same confidences.
 pub mod confidence;
+pub mod error;
 pub mod features;
 pub mod geometric;
 pub mod pool;
@@ -11,6 +12,7 @@ pub mod sequence;
 
 use crate::index::query::Match;
 use confidence::{Calibrator, Evidence};
+pub use error::VerifyError;
 use features::Features;
 use geometric::{verify, Intrinsics, Verification, VerifyParams};
 use sequence::SequenceCheck;

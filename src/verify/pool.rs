@@ -1,5 +1,6 @@
 //! Feature extraction and candidate checks on a bounded set of blocking threads, never on the
 //! request executor nor on the model thread.
+use super::error::VerifyError;
 use super::features::{from_image_bytes, FeatureParams, Features};
 use super::{Checks, LoopMatch};
 use crate::index::query::Match;
@@ -43,18 +44,19 @@ impl Verifier {
     }
 
     /// Runs `f` on a blocking thread once a worker slot is free.
-    async fn run<T: Send + 'static>(&self, f: impl FnOnce() -> T + Send + 'static) -> Result<T, String> {
-        let permit = self.slots.clone().acquire_owned().await.map_err(|_| "verifier stopped".to_string())?;
+    async fn run<T: Send + 'static>(&self, f: impl FnOnce() -> T + Send + 'static) -> Result<T, VerifyError> {
+        let permit =
+            self.slots.clone().acquire_owned().await.map_err(|_| VerifyError::Failed("verifier stopped".into()))?;
         tokio::task::spawn_blocking(move || {
             let _permit = permit;
             f()
         })
         .await
-        .map_err(|e| format!("verification worker failed: {e}"))
+        .map_err(|e| VerifyError::Failed(format!("verification worker failed: {e}")))
     }
 
     /// ORB features of an encoded image, capped to the stored size limit.
-    pub async fn extract(&self, image: bytes::Bytes, limits: ImageLimits) -> Result<Features, String> {
+    pub async fn extract(&self, image: bytes::Bytes, limits: ImageLimits) -> Result<Features, VerifyError> {
         let cfg = self.cfg.clone();
         let mut f = self.run(move || from_image_bytes(&image, &limits, &cfg.features)).await??;
         let fit = self.cfg.max_feature_bytes.saturating_sub(Features::encoded_len(0)) / Features::encoded_len(1).max(1);
@@ -68,7 +70,7 @@ impl Verifier {
         query: Option<Result<Arc<Features>, String>>,
         candidates: Vec<(Match, Option<Features>)>,
         checks: Checks,
-    ) -> Result<Vec<LoopMatch>, String> {
+    ) -> Result<Vec<LoopMatch>, VerifyError> {
         self.run(move || {
             let query = query.as_ref().map(|q| q.as_deref().map_err(String::as_str));
             super::check(query, candidates, &checks)

@@ -203,7 +203,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
                 let extract = async {
                     match features {
                         true => {
-                            verifier.extract(f.image.clone(), limits).await.map_err(|e| format!("no features: {e}"))
+                            verifier.extract(f.image.clone(), limits).await.map_err(crate::api::service::no_features)
                         }
                         false => Err("feature extraction is off".to_string()),
                     }

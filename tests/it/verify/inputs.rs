@@ -9,6 +9,7 @@ use std::io::Cursor;
 use image::{DynamicImage, ImageFormat};
 use loopd::verify::features::{extract, from_image_bytes, FeatureParams, Features};
 use loopd::verify::geometric::{verify, Intrinsics, VerifyParams};
+use loopd::verify::VerifyError;
 
 fn desk1() -> Option<Vec<u8>> {
     Some(std::fs::read(data("slambook2-ch11/1.png")).expect("desk frame"))
@@ -63,13 +64,15 @@ fn tiny_images_do_not_panic() {
 #[test]
 fn bad_buffers_are_errors() {
     let p = FeatureParams::default();
-    assert!(extract(&[0u8; 10], 4, 4, &p).unwrap_err().contains("expected 16"));
-    assert!(extract(&[], 0, 10, &p).unwrap_err().contains("empty image"));
+    assert!(extract(&[0u8; 10], 4, 4, &p).unwrap_err().to_string().contains("expected 16"));
+    assert!(extract(&[], 0, 10, &p).unwrap_err().to_string().contains("empty image"));
     let zero = FeatureParams { max_features: 0, ..p.clone() };
-    assert!(extract(&[0u8; 16], 4, 4, &zero).unwrap_err().contains("max_features"));
+    assert!(extract(&[0u8; 16], 4, 4, &zero).unwrap_err().to_string().contains("max_features"));
     let limits = ImageLimits::default();
-    assert!(from_image_bytes(b"not an image", &limits, &p).is_err());
-    assert!(from_image_bytes(&[], &limits, &p).is_err());
+    // A client's image that cannot be used is Invalid (a 400 where it is refused), not a failure.
+    assert!(matches!(from_image_bytes(b"not an image", &limits, &p), Err(VerifyError::Invalid(_))));
+    assert!(matches!(from_image_bytes(&[], &limits, &p), Err(VerifyError::Invalid(_))));
+    assert!(matches!(extract(&[], 0, 10, &p), Err(VerifyError::Invalid(_))));
 }
 
 #[test]
@@ -150,17 +153,19 @@ fn encode_decode_roundtrip_and_size() {
         assert!((a[0] - b[0]).abs() < 0.01 && (a[1] - b[1]).abs() < 0.01, "{a:?} vs {b:?}");
     }
     // Malformed blobs.
-    assert!(Features::decode(&blob[..blob.len() - 1]).unwrap_err().contains("expected"));
-    assert!(Features::decode(&blob[..10]).unwrap_err().contains("too short"));
+    assert!(Features::decode(&blob[..blob.len() - 1]).unwrap_err().to_string().contains("expected"));
+    assert!(Features::decode(&blob[..10]).unwrap_err().to_string().contains("too short"));
+    // A record that breaks its format is Corrupt: the server's data, not the client's input.
+    assert!(matches!(Features::decode(&blob[..10]), Err(VerifyError::Corrupt(_))));
     let mut bad = blob.clone();
     bad[0] = b'X';
-    assert!(Features::decode(&bad).unwrap_err().contains("magic"));
+    assert!(Features::decode(&bad).unwrap_err().to_string().contains("magic"));
     let mut huge = blob[..16].to_vec();
     huge[12..16].copy_from_slice(&u32::MAX.to_le_bytes());
-    assert!(Features::decode(&huge).unwrap_err().contains("exceeds limit"));
+    assert!(Features::decode(&huge).unwrap_err().to_string().contains("exceeds limit"));
     let mut zero = blob;
     zero[4..8].copy_from_slice(&0u32.to_le_bytes());
-    assert!(Features::decode(&zero).unwrap_err().contains("invalid image size"));
+    assert!(Features::decode(&zero).unwrap_err().to_string().contains("invalid image size"));
     let empty = Features { width: 1, height: 1, points: vec![], descriptors: vec![] };
     assert_eq!(Features::decode(&empty.encode()).expect("empty roundtrip"), empty);
 }
