@@ -18,7 +18,7 @@ use loopd::model::config::ModelConfig;
 use loopd::model::device::DType;
 use loopd::model::Model;
 use loopd::pb::{self, loopd_client::LoopdClient};
-use loopd::store::pg::{PgLog, Replication};
+use loopd::store::pg::{LogConfig, PgLog, Replication};
 use loopd::store::{NewFrame, Store};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -122,7 +122,7 @@ async fn main() -> anyhow::Result<()> {
 
     // Cold load: the frames go straight to the log (and to a sled folder), then a new node
     // answers its first request on that session, and sled reopens its folder.
-    let log = PgLog::connect(&url, 4, Replication::Synchronous).await?;
+    let log = PgLog::connect(&url, LogConfig::new(4, Replication::Synchronous)).await?;
     log.create_session(&meta("cold")).await?;
     let store = Store::open(dirs[2].path())?;
     let session = store.create_session(Some("cold".into()), new_session("cold")).await?;

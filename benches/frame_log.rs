@@ -7,7 +7,7 @@
 //! env: LOOPD_BENCH_FRAMES (per case, default 4000)
 mod common;
 use common::{frame, meta, new_session, WRITERS};
-use loopd::store::pg::{PgLog, Replication};
+use loopd::store::pg::{LogConfig, PgLog, Replication};
 use loopd::store::{NewFrame, Store};
 use std::sync::Arc;
 use std::time::Instant;
@@ -40,7 +40,7 @@ where
 async fn main() -> anyhow::Result<()> {
     let n: usize = std::env::var("LOOPD_BENCH_FRAMES").ok().and_then(|v| v.parse().ok()).unwrap_or(4000);
     let url = std::env::var("LOOPD_PG_URL").map_err(|_| anyhow::anyhow!("run through scripts/pg-replicated bench"))?;
-    let log = Arc::new(PgLog::connect(&url, WRITERS, Replication::Synchronous).await?);
+    let log = Arc::new(PgLog::connect(&url, LogConfig::new(WRITERS, Replication::Synchronous)).await?);
     let dir = tempfile::tempdir()?;
     let store = Arc::new(Store::open(dir.path())?);
     println!("| writers x batch | frames | PostgreSQL + sync standby frames/s | sled frames/s | PostgreSQL / sled |");

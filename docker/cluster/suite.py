@@ -36,7 +36,8 @@ NODES = ("loopd1", "loopd2", "loopd3")
 PATRONI = ["patronictl", "-c", "/etc/loopd-cluster/patroni.yml"]
 figures: list[tuple[str, str]] = []
 # The checks that can be run alone (the start and the embedding always run: the rest needs them).
-CHECKS = ("T6", "T5", "members", "jobs", "latency", "throughput", "T1", "T3", "T2", "T4", "primary", "robot")
+CHECKS = ("T6", "T5", "members", "jobs", "latency", "throughput", "T1", "T3", "T2", "T4", "T7", "T8", "primary",
+          "robot")
 selected: set[str] = set()
 
 
@@ -587,6 +588,81 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         load.verify(cluster, "T4 after it rejoined")
         print(f"     {old} -> {new}; {len(load.acked)} acknowledged, errors {load.errors}, gap {gap:.1f} s",
               flush=True)
+
+    @check("T7 both standbys killed: writes refused at once (UNAVAILABLE, not ready), none acknowledged; "
+           "writes again once a standby streams", "T7")
+    def _():
+        with cluster.grpc() as c:
+            c.create_session("t7")
+            c.add_frame("t7", "w", Frame(descriptor=descriptors[0], frame_id=0))
+        leader = until("a primary", cluster.leader, 60)
+        standbys = [p for p in PG if p != leader]
+        for pg in standbys:
+            sh("docker", "kill", "-s", "KILL", cluster.container(pg))
+        killed = time.monotonic()
+
+        def not_ready(node):
+            try:
+                with urllib.request.urlopen(f"http://{cluster.addr(node, 8080)}/readyz", timeout=5):
+                    return False
+            except urllib.error.HTTPError as e:
+                return e.code == 503
+        until("every loopd node not ready", lambda: all(not_ready(n) for n in NODES), 30)
+        figures.append(("every node not ready after both standbys were killed, s", f"{time.monotonic() - killed:.1f}"))
+        refused = []
+        with cluster.grpc("loopd1") as direct:
+            for i in (1, 2):
+                start = time.monotonic()
+                try:
+                    direct.add_frame("t7", "w", Frame(descriptor=descriptors[i], frame_id=i))
+                    raise AssertionError("a write was acknowledged with no standby streaming")
+                except grpc.RpcError as e:
+                    assert e.code() == grpc.StatusCode.UNAVAILABLE and "standby" in e.details(), e
+                    refused.append(time.monotonic() - start)
+        assert max(refused) < 5, f"refusals took {refused} s"
+        figures.append(("a write with no standby streaming refused in, s", f"{max(refused):.2f}"))
+        for pg in standbys:
+            cluster.compose("start", pg)
+        until("a synchronous standby streaming again", cluster.healthy, 180, every=1)
+        back = time.monotonic()
+
+        def written():
+            with cluster.grpc() as c:
+                try:
+                    c.add_frame("t7", "w", Frame(descriptor=descriptors[1], frame_id=1))
+                except grpc.RpcError as e:
+                    if e.code() != grpc.StatusCode.ALREADY_EXISTS:
+                        raise
+                return True
+        until("a write acknowledged again", written, 60)
+        figures.append(("writes again after a standby streamed again, s", f"{time.monotonic() - back:.1f}"))
+        stored = sorted(cluster.stored("t7"))
+        assert stored == [0, 1], f"t7 holds {stored}: frame 2 was refused, frame 1 stored once"
+
+    @check("T8 every container restarted at once: the cluster comes back by itself, nothing acknowledged lost", "T8")
+    def _():
+        with cluster.grpc() as c:
+            c.create_session("t8")
+            for i in range(5):
+                c.add_frame("t8", "w", Frame(descriptor=descriptors[i], frame_id=i))
+        start = time.monotonic()
+        cluster.compose("restart", "-t", "3")
+        cluster.ips.clear()
+        until("a primary with a synchronous standby", cluster.healthy, 180, every=1)
+        for n in NODES:
+            cluster.wait_node(n, 240)
+        cluster.ips.clear()
+
+        def written():
+            with cluster.grpc() as c:
+                c.add_frame("t8", "w", Frame(descriptor=descriptors[5], frame_id=5))
+                return True
+        until("a write acknowledged through the balancer", written, 60)
+        figures.append(("whole-cluster restart until writes are acknowledged, s", f"{time.monotonic() - start:.1f}"))
+        assert sorted(cluster.stored("t8")) == list(range(6))
+        for n in NODES:
+            restarts = sh("docker", "inspect", "-f", "{{.RestartCount}} {{.State.Status}}", cluster.container(n))
+            assert restarts.endswith("running"), f"{n}: {restarts}"
 
     @check("never two writable primaries, sampled every second through every fault", "primary")
     def _():

@@ -10,7 +10,7 @@ use crate::engine::{Engine, EngineConfig};
 use crate::model::preprocess::ImageLimits;
 use crate::model::Model;
 use crate::pb;
-use crate::store::pg::Replication;
+use crate::store::pg::{LogConfig, Replication};
 use crate::store::{Membership, SearchConfig, Store};
 use crate::verify::confidence::{Calibration, SHIPPED};
 use crate::verify::pool::VerifyConfig;
@@ -62,6 +62,8 @@ pub struct ServerConfig {
 pub struct ClusterConfig {
     pub url: String,
     pub connections: usize,
+    /// The longest any call waits on the log's database (see `LogConfig::deadline`).
+    pub deadline: Duration,
     /// Trials only: accept a primary whose commits do not wait for a synchronous standby.
     pub unreplicated: bool,
     /// How often the node reads the tenants again (keys issued or revoked through other nodes
@@ -83,6 +85,7 @@ impl ClusterConfig {
         Self {
             url: url.into(),
             connections: 16,
+            deadline: Duration::from_secs(10),
             unreplicated: false,
             tenant_refresh: Duration::from_secs(1),
             node: String::new(),
@@ -222,9 +225,25 @@ impl RunningServer {
                 .with_context(|| format!("opening store in {}", cfg.data_dir.display()))?,
             Some(c) => {
                 let replication = if c.unreplicated { Replication::NotRequired } else { Replication::Synchronous };
-                let store = Store::open_cluster(&cfg.data_dir, &c.url, c.connections, replication, cfg.search)
-                    .await
-                    .with_context(|| format!("joining the cluster (its cache in {})", cfg.data_dir.display()))?;
+                let log = LogConfig { deadline: c.deadline, ..LogConfig::new(c.connections, replication) };
+                // A database not reachable yet (the whole cluster starting at once, a failover)
+                // is waited for, with backoff: the node listens once it has joined. Any other
+                // error (a wrong URL, an unreplicated primary) ends the start.
+                let mut wait = Duration::from_millis(500);
+                let store = loop {
+                    match Store::open_cluster(&cfg.data_dir, &c.url, log, cfg.search).await {
+                        Err(crate::store::StoreError::Unavailable(why)) => {
+                            tracing::warn!(error = %why, retry_in = ?wait, "the cluster's database is not reachable yet");
+                            tokio::time::sleep(wait).await;
+                            wait = (wait * 2).min(Duration::from_secs(10));
+                        }
+                        opened => {
+                            break opened.with_context(|| {
+                                format!("joining the cluster (its cache in {})", cfg.data_dir.display())
+                            })?
+                        }
+                    }
+                };
                 tracing::info!(cache = %cfg.data_dir.display(), "sessions and frames in the cluster's log");
                 store
             }

@@ -122,6 +122,10 @@ pub struct ServeArgs {
     /// Connections this node keeps to the cluster's database.
     #[arg(long, env = "LOOPD_CLUSTER_CONNECTIONS", default_value_t = 16)]
     pub cluster_connections: usize,
+    /// Seconds any call waits on the cluster's database (a connection, a statement, a write up to
+    /// its commit); past it the call answers unavailable and its connection is dropped.
+    #[arg(long, env = "LOOPD_CLUSTER_DEADLINE_SECS", default_value_t = 10.0)]
+    pub cluster_deadline_secs: f64,
     /// Trials only: accept a database whose commits do not wait for a synchronous standby (an
     /// acknowledged frame may then be lost with the primary).
     #[arg(long, env = "LOOPD_CLUSTER_UNREPLICATED", requires = "cluster")]
@@ -201,6 +205,7 @@ impl ServeArgs {
             cluster: self.cluster.as_ref().map(|url| ClusterConfig {
                 url: url.clone(),
                 connections: self.cluster_connections.clamp(1, 1024),
+                deadline: Duration::from_secs_f64(self.cluster_deadline_secs.clamp(0.1, 3600.0)),
                 unreplicated: self.cluster_unreplicated,
                 tenant_refresh: Duration::from_secs_f64(self.cluster_tenant_refresh_secs.clamp(0.01, 3600.0)),
                 node: self.cluster_node.clone(),

@@ -8,7 +8,7 @@ use super::cluster_jobs::LoggedJob;
 use super::embedded::Sled;
 use super::loops::{LoopRecord, Verdict};
 use super::owners::{ClusterView, Membership};
-use super::pg::Replication;
+use super::pg::LogConfig;
 use super::{SearchConfig, Session, SessionInfo, Store, StoreError};
 use std::path::Path;
 use std::sync::Arc;
@@ -43,14 +43,8 @@ impl Store {
     /// Opens `dir` as this node's cache and connects to the cluster's log (`url`: a multi-host
     /// PostgreSQL URL with `target_session_attrs=read-write`), refusing a primary whose commits
     /// do not wait for a synchronous standby unless `replication` says otherwise.
-    pub async fn open_cluster(
-        dir: &Path,
-        url: &str,
-        connections: usize,
-        replication: Replication,
-        search: SearchConfig,
-    ) -> Result<Self, StoreError> {
-        let (cluster, tenants) = Cluster::connect(url, connections, replication).await?;
+    pub async fn open_cluster(dir: &Path, url: &str, log: LogConfig, search: SearchConfig) -> Result<Self, StoreError> {
+        let (cluster, tenants) = Cluster::connect(url, log).await?;
         let dir = dir.to_path_buf();
         // sled opens and drops its cache with blocking I/O.
         let store =

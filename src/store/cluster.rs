@@ -10,7 +10,7 @@ use super::cluster_jobs::LoggedJob;
 use super::loops::{KeptLoops, LoopRecord, Verdict};
 use super::operations::Operations;
 use super::owners::{owners, ClusterView, HeldSession, Membership};
-use super::pg::{Appended, Head, PgLog, Replication};
+use super::pg::{Appended, Head, LogConfig, PgLog};
 use super::record::{encode_frame, frame_key, FrameHeader, SessionMeta};
 use super::{NewFrame, Session, SessionInfo, Store, StoreError};
 use std::sync::atomic::Ordering::Relaxed;
@@ -50,14 +50,23 @@ impl Cluster {
     /// Connects to the cluster's log (`url`: a multi-host PostgreSQL URL with
     /// `target_session_attrs=read-write`), refusing a primary whose commits do not wait for a
     /// synchronous standby unless `replication` says otherwise; with the log's tenants.
-    pub(super) async fn connect(
-        url: &str,
-        connections: usize,
-        replication: Replication,
-    ) -> Result<(Self, Vec<(String, Vec<u8>)>), StoreError> {
-        let log = PgLog::connect(url, connections, replication).await?;
+    pub(super) async fn connect(url: &str, config: LogConfig) -> Result<(Self, Vec<(String, Vec<u8>)>), StoreError> {
+        let log = PgLog::connect(url, config).await?;
         let tenants = log.tenants().await?;
         Ok((Cluster { log, not_writable: Default::default(), members: Default::default() }, tenants))
+    }
+}
+
+impl Cluster {
+    /// Unavailable at once while the last probe found no writable primary (a node cut off from
+    /// the database, a failover under way): a write would only wait out the log's deadline, and
+    /// this session's later writes behind it. The balancer has stopped sending writes here by
+    /// then (readiness); a client that reached this node directly gets the reason.
+    fn writable(&self) -> Result<(), StoreError> {
+        match self.not_writable.lock().clone() {
+            None => Ok(()),
+            Some(why) => Err(StoreError::Unavailable(format!("not ready: {why}"))),
+        }
     }
 }
 
@@ -108,6 +117,7 @@ impl Operations for Cluster {
         frames: Vec<NewFrame>,
         loops: KeptLoops,
     ) -> Result<Vec<u64>, StoreError> {
+        self.writable()?;
         let appended = self.log.append_keeping(&s.meta, &frames, loops).await?;
         // Acknowledged from here on: a failure below leaves the frames to the next catch-up.
         if let Err(e) = self.apply_own(store, s, &frames, &appended).await {
@@ -117,6 +127,7 @@ impl Operations for Cluster {
     }
 
     async fn keep_loops(&self, _: &Store, s: &Arc<Session>, loops: Vec<LoopRecord>) -> Result<(), StoreError> {
+        self.writable()?;
         self.log.keep_loops(s.tbl, &loops).await
     }
 
@@ -128,6 +139,7 @@ impl Operations for Cluster {
         matched: u64,
         verdict: Verdict,
     ) -> Result<LoopRecord, StoreError> {
+        self.writable()?;
         self.log.set_verdict((&s.meta.id, s.tbl), query, matched, &verdict).await
     }
 

@@ -35,6 +35,25 @@ pub enum Replication {
     NotRequired,
 }
 
+/// How a node reaches the log: its connections, whether commits must wait for a synchronous
+/// standby, and the deadline of every wait on the database.
+#[derive(Clone, Copy, Debug)]
+pub struct LogConfig {
+    pub connections: usize,
+    pub replication: Replication,
+    /// The longest a call waits on the database: a connection taken or opened, a statement,
+    /// a write's whole transaction up to its COMMIT. Past it the call answers Unavailable and its
+    /// connection is dropped (the next call opens one, which finds the primary of now).
+    pub deadline: std::time::Duration,
+}
+
+impl LogConfig {
+    /// `connections` to the log, with the default deadline of 10 s.
+    pub fn new(connections: usize, replication: Replication) -> Self {
+        Self { connections, replication, deadline: std::time::Duration::from_secs(10) }
+    }
+}
+
 pub struct PgLog {
     db: Arc<Db>,
     /// Each session's writer queue (see `write_session`).
@@ -45,6 +64,8 @@ pub struct PgLog {
 struct Db {
     pool: Pool,
     replication: Replication,
+    /// See [`LogConfig::deadline`].
+    deadline: std::time::Duration,
     /// The primary new connections last reached: its address, port and start time.
     primary: parking_lot::Mutex<Option<String>>,
     /// Counts changes of primary (a failover, or a restart): frames read from an earlier primary
@@ -52,7 +73,15 @@ struct Db {
     /// what they applied before the change (`epoch`).
     epoch: AtomicU64,
     /// Why writes are refused now: the primary does not wait for a synchronous standby.
-    unreplicated: parking_lot::Mutex<Option<String>>,
+    unreplicated: parking_lot::Mutex<Option<Unreplicated>>,
+}
+
+/// Why the primary is not writable for loopd, and whether waiting can change it (a standby
+/// coming back) or only a configuration can.
+#[derive(Clone, Debug)]
+struct Unreplicated {
+    why: String,
+    transient: bool,
 }
 
 /// A batch as committed: the frames' ids in order, and the session's version after it.
@@ -123,9 +152,18 @@ pub(super) fn pg_error(e: tokio_postgres::Error) -> StoreError {
     }
 }
 
+/// A call that ran past the log's deadline (a cut-off or frozen primary, a commit waiting for a
+/// standby that does not answer).
+fn late(deadline: std::time::Duration, what: &str) -> StoreError {
+    StoreError::Unavailable(format!("the cluster database did not answer within {deadline:?} ({what}); retry later"))
+}
+
 fn pool_error(e: deadpool_postgres::PoolError) -> StoreError {
     match e {
         deadpool_postgres::PoolError::Backend(e) => pg_error(e),
+        deadpool_postgres::PoolError::Timeout(_) => {
+            StoreError::Unavailable("the cluster database did not answer in time (a connection); retry later".into())
+        }
         other => StoreError::Unavailable(format!("the cluster database is unavailable ({other}); retry later")),
     }
 }
@@ -138,7 +176,10 @@ impl Db {
         if Object::metrics(&client).recycle_count > 0 {
             return Ok(client);
         }
-        match self.check(&client).await {
+        let checked = tokio::time::timeout(self.deadline, self.check(&client))
+            .await
+            .unwrap_or_else(|_| Err(late(self.deadline, "checking a new connection")));
+        match checked {
             Ok(()) => Ok(client),
             Err(e) => {
                 // Never back into the pool unchecked.
@@ -149,22 +190,46 @@ impl Db {
     }
 
     async fn check(&self, client: &Object) -> Result<(), StoreError> {
+        // The standbys that really are there: streaming and synchronous (pg_stat_replication),
+        // not only named in the setting (Patroni's strict mode names '*' with none left).
         let sql = "SELECT pg_postmaster_start_time()::text || ' ' || coalesce(host(inet_server_addr()), 'socket') \
                    || ':' || coalesce(inet_server_port(), 0)::text, current_setting('synchronous_commit'), \
-                   current_setting('synchronous_standby_names'), pg_is_in_recovery()";
+                   current_setting('synchronous_standby_names'), pg_is_in_recovery(), \
+                   (SELECT count(*) FROM pg_stat_replication \
+                    WHERE state = 'streaming' AND sync_state IN ('sync', 'quorum')), \
+                   pg_has_role(current_user, 'pg_read_all_stats', 'USAGE')";
         let row = client.query_one(sql, &[]).await.map_err(pg_error)?;
-        let (primary, commit, standbys, recovering): (String, String, String, bool) =
-            (row.get(0), row.get(1), row.get(2), row.get(3));
+        let (primary, commit, standbys, recovering, streaming, sees): (String, String, String, bool, i64, bool) =
+            (row.get(0), row.get(1), row.get(2), row.get(3), row.get(4), row.get(5));
         if recovering {
             return Err(StoreError::Unavailable(format!("{primary} is a standby, not the primary; retry later")));
         }
-        let waits = !standbys.trim().is_empty() && matches!(commit.as_str(), "on" | "remote_write" | "remote_apply");
-        *self.unreplicated.lock() = (self.replication == Replication::Synchronous && !waits).then(|| {
-            format!(
-                "the cluster database does not wait for a synchronous standby (synchronous_commit = {commit}, \
-                 synchronous_standby_names = '{standbys}'): an acknowledged frame could be lost with the primary"
-            )
-        });
+        let configured =
+            !standbys.trim().is_empty() && matches!(commit.as_str(), "on" | "remote_write" | "remote_apply");
+        *self.unreplicated.lock() = match self.replication {
+            Replication::NotRequired => None,
+            Replication::Synchronous if !configured => Some(Unreplicated {
+                why: format!(
+                    "the cluster database does not wait for a synchronous standby (synchronous_commit = {commit}, \
+                     synchronous_standby_names = '{standbys}'): an acknowledged frame could be lost with the primary"
+                ),
+                transient: false,
+            }),
+            Replication::Synchronous if !sees => Some(Unreplicated {
+                why: "loopd's database role cannot read pg_stat_replication, so it cannot tell whether a \
+                      synchronous standby is streaming (GRANT pg_monitor to it)"
+                    .into(),
+                transient: false,
+            }),
+            Replication::Synchronous if streaming == 0 => Some(Unreplicated {
+                why: format!(
+                    "no synchronous standby is streaming from the primary (pg_stat_replication; \
+                     synchronous_standby_names = '{standbys}'): a commit would wait until one is back"
+                ),
+                transient: true,
+            }),
+            Replication::Synchronous => None,
+        };
         let mut known = self.primary.lock();
         if known.as_ref().is_some_and(|p| *p != primary) {
             let epoch = self.epoch.fetch_add(1, SeqCst) + 1;
@@ -177,7 +242,7 @@ impl Db {
     /// Unavailable while the primary does not wait for a synchronous standby.
     fn writable(&self) -> Result<(), StoreError> {
         match self.unreplicated.lock().clone() {
-            Some(why) => Err(StoreError::Unavailable(format!("writes refused: {why}"))),
+            Some(u) => Err(StoreError::Unavailable(format!("writes refused: {}", u.why))),
             None => Ok(()),
         }
     }
@@ -206,7 +271,8 @@ fn loop_record(v: serde_json::Value) -> Result<LoopRecord, StoreError> {
 impl PgLog {
     /// Connects (a multi-host URL with `target_session_attrs=read-write` finds the primary),
     /// creates the schema if missing and checks that commits wait for a synchronous standby.
-    pub async fn connect(url: &str, max_connections: usize, replication: Replication) -> Result<Self, StoreError> {
+    pub async fn connect(url: &str, config: LogConfig) -> Result<Self, StoreError> {
+        let LogConfig { connections: max_connections, replication, deadline } = config;
         let mut config: tokio_postgres::Config =
             url.parse().map_err(|e| StoreError::InvalidArgument(format!("cluster URL: {e}")))?;
         // A host that does not answer (cut off, not refusing) must not hold a request for long.
@@ -221,15 +287,25 @@ impl PgLog {
         }
         if config.get_keepalives_idle() == std::time::Duration::from_secs(2 * 60 * 60) {
             config.keepalives_idle(std::time::Duration::from_secs(5));
+            // An idle connection to a host that went away is closed after 5 + 3 x 1 s.
+            config.keepalives_interval(std::time::Duration::from_secs(1));
+            config.keepalives_retries(3);
         }
         let manager = Manager::from_config(config, NoTls, ManagerConfig { recycling_method: RecyclingMethod::Fast });
         let pool = Pool::builder(manager)
             .max_size(max_connections.max(1))
+            // Waiting for a free connection, opening one (each host of the URL in turn) and
+            // recycling one are bounded too.
+            .runtime(deadpool_postgres::Runtime::Tokio1)
+            .wait_timeout(Some(deadline))
+            .create_timeout(Some(deadline))
+            .recycle_timeout(Some(deadline))
             .build()
             .map_err(|e| StoreError::InvalidArgument(format!("cluster pool: {e}")))?;
         let db = Db {
             pool,
             replication,
+            deadline,
             primary: Default::default(),
             epoch: AtomicU64::new(0),
             unreplicated: Default::default(),
@@ -240,8 +316,13 @@ impl PgLog {
         // the catalog): one at a time, under a transaction-scoped advisory lock.
         let schema = format!("BEGIN; SELECT pg_advisory_xact_lock({SCHEMA_LOCK}); {SCHEMA}; COMMIT");
         client.batch_execute(&schema).await.map_err(pg_error)?;
-        if let Some(why) = log.db.unreplicated.lock().clone() {
-            return Err(StoreError::InvalidArgument(why));
+        // A setting that never waits is a configuration to fix; a standby not streaming yet (the
+        // whole cluster starting) is waited for by the caller.
+        if let Some(u) = log.db.unreplicated.lock().clone() {
+            return Err(match u.transient {
+                true => StoreError::Unavailable(u.why),
+                false => StoreError::InvalidArgument(u.why),
+            });
         }
         Ok(log)
     }
@@ -546,13 +627,38 @@ async fn write_session(db: Arc<Db>, session: String, mut queue: tokio::sync::mps
 
 /// One transaction for a group of requests, each all or none under its savepoint; what each
 /// request is answered once the commit returned.
+///
+/// The whole of it, the connection included, has the log's deadline: a commit that has not
+/// returned by then (a primary cut off or frozen, or waiting for a standby that does not answer)
+/// is answered Unavailable and its connection dropped, so this session's later writes are not
+/// held behind it. Whether such a transaction committed is unknown to the client: frames with
+/// ids make the retry exact (a stored one answers already-exists).
 async fn commit_group(
     db: &Db,
     session: &str,
     group: &[Request],
 ) -> Result<Vec<Result<Appended, StoreError>>, StoreError> {
-    let mut client = db.client().await?;
+    let started = tokio::time::Instant::now();
+    let mut client = tokio::time::timeout(db.deadline, db.client())
+        .await
+        .map_err(|_| late(db.deadline, "a connection for a write"))??;
     db.writable()?;
+    let left = db.deadline.saturating_sub(started.elapsed());
+    match tokio::time::timeout(left, commit_on(&mut client, session, group)).await {
+        Ok(answers) => answers,
+        Err(_) => {
+            // Mid-transaction: never back into the pool.
+            let _ = Object::take(client);
+            Err(late(db.deadline, "a write, which may or may not have been committed"))
+        }
+    }
+}
+
+async fn commit_on(
+    client: &mut Object,
+    session: &str,
+    group: &[Request],
+) -> Result<Vec<Result<Appended, StoreError>>, StoreError> {
     let tx = client.transaction().await.map_err(pg_error)?;
     // The session row's lock orders the groups of a session: seq follows commit order.
     let row = tx

@@ -23,7 +23,15 @@ type Client = LoopdClient<tonic::transport::Channel>;
 async fn node(dir: &std::path::Path, url: &str) -> RunningServer {
     let cfg = ServerConfig {
         engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
-        cluster: Some(ClusterConfig { connections: 4, ..ClusterConfig::new(url) }),
+        // One probe of the log, at start: this test needs a write that reaches the primary in the
+        // moment between the standby's loss and the node's next probe (which would refuse it at
+        // once, `a_write_past_the_deadline_is_unavailable_and_a_gone_standby_refuses_writes_at_once`),
+        // so that the write waits for a standby there.
+        cluster: Some(ClusterConfig {
+            connections: 4,
+            tenant_refresh: Duration::from_secs(3600),
+            ..ClusterConfig::new(url)
+        }),
         ..ServerConfig::on_loopback(dir.to_path_buf())
     };
     RunningServer::start(cfg, imagenet_model()).await.unwrap()

@@ -8,7 +8,7 @@
 use crate::common::pg::{env, psql, server};
 use loopd::index::normalize;
 use loopd::index::Storage;
-use loopd::store::pg::{PgLog, Replication};
+use loopd::store::pg::{LogConfig, PgLog, Replication};
 use loopd::store::record::SessionMeta;
 use loopd::store::{NewFrame, StoreError};
 use std::time::Duration;
@@ -48,8 +48,11 @@ fn frame(i: usize, id: Option<u64>) -> NewFrame {
     }
 }
 
+/// A log whose deadline (60 s) outlasts a standby's restart: the tests below that stop the
+/// standby see a commit wait for it. The deadline itself has its own test.
 async fn log() -> PgLog {
-    PgLog::connect(&env("LOOPD_PG_URL"), 4, Replication::Synchronous).await.expect("connect")
+    let config = LogConfig { deadline: Duration::from_secs(60), ..LogConfig::new(4, Replication::Synchronous) };
+    PgLog::connect(&env("LOOPD_PG_URL"), config).await.expect("connect")
 }
 
 #[tokio::test]
@@ -123,8 +126,8 @@ async fn a_primary_that_does_not_wait_for_a_standby_is_refused() {
     psql("ALTER SYSTEM SET synchronous_standby_names = ''");
     psql("SELECT pg_reload_conf()");
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let refused = PgLog::connect(&env("LOOPD_PG_URL"), 1, Replication::Synchronous).await;
-    let allowed = PgLog::connect(&env("LOOPD_PG_URL"), 1, Replication::NotRequired).await;
+    let refused = PgLog::connect(&env("LOOPD_PG_URL"), LogConfig::new(1, Replication::Synchronous)).await;
+    let allowed = PgLog::connect(&env("LOOPD_PG_URL"), LogConfig::new(1, Replication::NotRequired)).await;
     psql("ALTER SYSTEM RESET synchronous_standby_names");
     psql("SELECT pg_reload_conf()");
     let e = refused.err().expect("refused");
@@ -133,7 +136,10 @@ async fn a_primary_that_does_not_wait_for_a_standby_is_refused() {
     // A URL that names only the standby finds no read-write server.
     let standby_only =
         format!("postgres://postgres@127.0.0.1:{}/loopd?target_session_attrs=read-write", env("LOOPD_PG_STANDBY_PORT"));
-    let e = PgLog::connect(&standby_only, 1, Replication::Synchronous).await.err().expect("no primary there");
+    let e = PgLog::connect(&standby_only, LogConfig::new(1, Replication::Synchronous))
+        .await
+        .err()
+        .expect("no primary there");
     assert!(matches!(e, StoreError::Unavailable(_)), "{e:?}");
 }
 
@@ -189,10 +195,64 @@ async fn nodes_joining_an_empty_database_at_once_all_join() {
         psql(&format!("DROP DATABASE IF EXISTS {db} WITH (FORCE)"));
         psql(&format!("CREATE DATABASE {db}"));
         let url = format!("{base}/{db}");
-        let joins = (0..8).map(|_| PgLog::connect(&url, 1, Replication::Synchronous));
+        let joins = (0..8).map(|_| PgLog::connect(&url, LogConfig::new(1, Replication::Synchronous)));
         for (i, joined) in futures::future::join_all(joins).await.into_iter().enumerate() {
             assert!(joined.is_ok(), "round {round}, node {i}: {:?}", joined.err());
         }
         psql(&format!("DROP DATABASE {db} WITH (FORCE)"));
     }
+}
+
+/// A commit waiting for a standby that is gone ends at the log's deadline as Unavailable (not a
+/// hang); the next probe sees that no synchronous standby streams (pg_stat_replication, while the
+/// setting still names one), so writes are refused at once until it streams again; a retry of
+/// the timed-out write with its frame id is exact.
+#[tokio::test]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn a_write_past_the_deadline_is_unavailable_and_a_gone_standby_refuses_writes_at_once() {
+    let deadline = Duration::from_secs(2);
+    let config = LogConfig { deadline, ..LogConfig::new(2, Replication::Synchronous) };
+    let log = PgLog::connect(&env("LOOPD_PG_URL"), config).await.expect("connect");
+    let m = meta("gate");
+    log.create_session(&m).await.unwrap();
+    log.append(&m, &[frame(0, Some(1))]).await.unwrap();
+    log.probe().await.expect("a standby streams");
+
+    server("LOOPD_PG_STANDBY", "stop");
+    let started = std::time::Instant::now();
+    let late = log.append(&m, &[frame(1, Some(2))]).await;
+    let took = started.elapsed();
+    let stopped = log.probe().await;
+    let started = std::time::Instant::now();
+    let refused = log.append(&m, &[frame(2, Some(3))]).await;
+    let refused_in = started.elapsed();
+    server("LOOPD_PG_STANDBY", "start");
+
+    match &late {
+        Err(StoreError::Unavailable(why)) => assert!(why.contains("may or may not have been committed"), "{why}"),
+        other => panic!("a commit with no standby answered {other:?}"),
+    }
+    assert!(took >= deadline && took < deadline * 3, "answered after {took:?}, deadline {deadline:?}");
+    match &stopped {
+        Err(StoreError::Unavailable(why)) => assert!(why.contains("no synchronous standby is streaming"), "{why}"),
+        other => panic!("the probe with the standby stopped answered {other:?}"),
+    }
+    assert!(matches!(refused, Err(StoreError::Unavailable(_))), "{refused:?}");
+    assert!(refused_in < Duration::from_millis(500), "refused after {refused_in:?}: it waited on the database");
+
+    let back = std::time::Instant::now();
+    while log.probe().await.is_err() {
+        assert!(back.elapsed() < Duration::from_secs(60), "the standby streams again within 60 s");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    // The timed-out commit was kept by the primary once the standby had it, or not at all:
+    // the retry stores frame 2 once either way.
+    match log.append(&m, &[frame(1, Some(2))]).await {
+        Ok(_) | Err(StoreError::FrameExists(..)) => {}
+        other => panic!("the retry answered {other:?}"),
+    }
+    log.append(&m, &[frame(2, Some(3))]).await.expect("writes again");
+    let ids: Vec<u64> = log.frames("gate", 0).await.unwrap().iter().map(|f| f.frame_id).collect();
+    assert_eq!(ids, [1, 2, 3], "each frame once");
+    log.delete_session("gate").await.unwrap();
 }
