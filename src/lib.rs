@@ -14,11 +14,12 @@
 //!   `eval` for its validation.
 //! - `eval/`: `loopd eval` (recall at 100% precision, recall@1, AP, the confidence sweep, plots);
 //!   runs the same search and checks as the server (`index`, `verify::check`).
-//! - `api/`: the network service. `service.rs` is what both transports do, written once;
+//! - `api/`: the network service. `service/` is what both transports do, written once;
 //!   `http/` (axum: router, state, handlers) and `grpc/` (tonic) only translate, and neither
 //!   imports the other; `wire.rs` holds what both read alike; `tenancy.rs` scopes every call to
 //!   the caller's tenant; `jobs.rs` runs offline sequence jobs (owned by the server, calling the
-//!   service); `kept.rs` and `loops.rs` the kept loop candidates; `server.rs` the wiring.
+//!   service); `kept.rs` and `loops.rs` the kept loop candidates; `server.rs` the wiring and
+//!   `watch.rs` what runs beside the calls.
 //! - `engine/`: the inference engine, every frame's way to the one model thread.
 //! - `verify/`: local features, geometric and sequence checks, the one decision rule and the
 //!   calibrated confidence; reads `index`'s matches and `store`'s records, never the reverse.

@@ -12,4 +12,5 @@ pub mod server;
 pub mod service;
 pub mod tenancy;
 pub mod tls;
+mod watch;
 pub mod wire;

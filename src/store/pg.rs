@@ -1,7 +1,8 @@
 //! The durable frame log on PostgreSQL with synchronous replication: the cluster's
 //! copy of every session and frame, beside which loopd nodes keep their in-memory exact indexes
 //! (`SessionIndex`), rebuilt from it. `serve --cluster` uses it through `cluster.rs`; members
-//! (`pg_members.rs`) and sequence jobs (`pg_jobs.rs`) have their tables beside it (docs/cluster.md).
+//! (`pg_members.rs`) and sequence jobs (`pg_jobs.rs`) have their tables beside it, and the write
+//! path (`pg_writer.rs`: grouped commits per session) its own file (docs/cluster.md).
 //!
 //! Schema: `loopd_sessions(id, tbl, meta, version, next_frame_id)` and one table per session,
 //! `loopd_frames_<tbl>(frame_id, seq, write_id, record, features, thumb)`, so deleting a session
@@ -17,9 +18,9 @@
 //! whose commits do not wait for a synchronous standby (`synchronous_commit` on or stronger and
 //! `synchronous_standby_names` set), unless it is opened with `Replication::NotRequired`.
 use super::loops::{LoopRecord, Verdict};
-use super::record::{decode_frame, encode_frame, FrameHeader, SessionMeta};
+use super::pg_writer::{write_session, Request};
+use super::record::{decode_frame, FrameHeader, SessionMeta};
 use super::{NewFrame, StoreError};
-use crate::index::Storage;
 use deadpool_postgres::{Manager, ManagerConfig, Object, Pool, RecyclingMethod};
 use std::sync::atomic::{AtomicU64, Ordering::SeqCst};
 use std::sync::Arc;
@@ -56,16 +57,16 @@ impl LogConfig {
 
 pub struct PgLog {
     db: Arc<Db>,
-    /// Each session's writer queue (see `write_session`).
+    /// Each session's writer queue (see `pg_writer::write_session`).
     writers: parking_lot::Mutex<std::collections::HashMap<String, tokio::sync::mpsc::UnboundedSender<Request>>>,
 }
 
 /// The connections, and what the log knows of the primary behind them.
-struct Db {
+pub(super) struct Db {
     pool: Pool,
     replication: Replication,
     /// See [`LogConfig::deadline`].
-    deadline: std::time::Duration,
+    pub(super) deadline: std::time::Duration,
     /// The primary new connections last reached: its address, port and start time.
     primary: parking_lot::Mutex<Option<String>>,
     /// Counts changes of primary (a failover, or a restart): frames read from an earlier primary
@@ -154,7 +155,7 @@ pub(super) fn pg_error(e: tokio_postgres::Error) -> StoreError {
 
 /// A call that ran past the log's deadline (a cut-off or frozen primary, a commit waiting for a
 /// standby that does not answer).
-fn late(deadline: std::time::Duration, what: &str) -> StoreError {
+pub(super) fn late(deadline: std::time::Duration, what: &str) -> StoreError {
     StoreError::Unavailable(format!("the cluster database did not answer within {deadline:?} ({what}); retry later"))
 }
 
@@ -171,7 +172,7 @@ fn pool_error(e: deadpool_postgres::PoolError) -> StoreError {
 impl Db {
     /// A pooled connection; a new one first says which primary it reached (a change bumps the
     /// epoch) and whether its commits wait for a synchronous standby.
-    async fn client(&self) -> Result<Object, StoreError> {
+    pub(super) async fn client(&self) -> Result<Object, StoreError> {
         let client = self.pool.get().await.map_err(pool_error)?;
         if Object::metrics(&client).recycle_count > 0 {
             return Ok(client);
@@ -240,7 +241,7 @@ impl Db {
     }
 
     /// Unavailable while the primary does not wait for a synchronous standby.
-    fn writable(&self) -> Result<(), StoreError> {
+    pub(super) fn writable(&self) -> Result<(), StoreError> {
         match self.unreplicated.lock().clone() {
             Some(u) => Err(StoreError::Unavailable(format!("writes refused: {}", u.why))),
             None => Ok(()),
@@ -248,17 +249,17 @@ impl Db {
     }
 }
 
-fn frames_table(tbl: i64) -> String {
+pub(super) fn frames_table(tbl: i64) -> String {
     format!("loopd_frames_{tbl}")
 }
 
 /// The session's kept loops (`loops.rs` records as JSON), by (query frame, match frame).
-fn loops_table(tbl: i64) -> String {
+pub(super) fn loops_table(tbl: i64) -> String {
     format!("loopd_loops_{tbl}")
 }
 
 /// A loop table row: the loop as kept for the frame `query` (its key and its JSON).
-fn loop_row(query: u64, l: &LoopRecord) -> Result<(i64, i64, serde_json::Value), StoreError> {
+pub(super) fn loop_row(query: u64, l: &LoopRecord) -> Result<(i64, i64, serde_json::Value), StoreError> {
     let json = serde_json::to_value(LoopRecord { query_frame: query, ..l.clone() })
         .map_err(|e| StoreError::Storage(e.to_string()))?;
     Ok((query as i64, l.match_frame as i64, json))
@@ -582,171 +583,4 @@ fn head(r: &tokio_postgres::Row) -> Result<Head, StoreError> {
     let meta: serde_json::Value = r.get(0);
     let meta = serde_json::from_value(meta).map_err(|e| StoreError::Storage(format!("session meta: {e}")))?;
     Ok(Head { meta, tbl: r.get(1), version: r.get(2) })
-}
-
-/// One `append` call waiting for its group's commit.
-struct Request {
-    frames: Vec<NewFrame>,
-    /// Loops kept with the frames, by the position of their query frame in `frames`.
-    loops: Vec<(usize, LoopRecord)>,
-    storage: Storage,
-    done: tokio::sync::oneshot::Sender<Result<Appended, StoreError>>,
-}
-
-/// Frames one transaction takes at most (requests beyond wait for the next one).
-const MAX_GROUP_FRAMES: usize = 512;
-
-/// A session's writer: takes every request waiting and commits them in one transaction, until
-/// the session's queue is dropped (the session was deleted or the log closed).
-async fn write_session(db: Arc<Db>, session: String, mut queue: tokio::sync::mpsc::UnboundedReceiver<Request>) {
-    while let Some(first) = queue.recv().await {
-        let mut group = vec![first];
-        let mut frames = group[0].frames.len();
-        while frames < MAX_GROUP_FRAMES {
-            match queue.try_recv() {
-                Ok(r) => {
-                    frames += r.frames.len();
-                    group.push(r);
-                }
-                Err(_) => break,
-            }
-        }
-        let (answers, committed) = match commit_group(&db, &session, &group).await {
-            Ok(answers) => (answers, None),
-            Err(e) => (Vec::new(), Some(e)),
-        };
-        for (i, r) in group.into_iter().enumerate() {
-            let answer = match &committed {
-                Some(e) => Err(e.clone()),
-                None => answers[i].clone(),
-            };
-            let _ = r.done.send(answer);
-        }
-    }
-}
-
-/// One transaction for a group of requests, each all or none under its savepoint; what each
-/// request is answered once the commit returned.
-///
-/// The whole of it, the connection included, has the log's deadline: a commit that has not
-/// returned by then (a primary cut off or frozen, or waiting for a standby that does not answer)
-/// is answered Unavailable and its connection dropped, so this session's later writes are not
-/// held behind it. Whether such a transaction committed is unknown to the client: frames with
-/// ids make the retry exact (a stored one answers already-exists).
-async fn commit_group(
-    db: &Db,
-    session: &str,
-    group: &[Request],
-) -> Result<Vec<Result<Appended, StoreError>>, StoreError> {
-    let started = tokio::time::Instant::now();
-    let mut client = tokio::time::timeout(db.deadline, db.client())
-        .await
-        .map_err(|_| late(db.deadline, "a connection for a write"))??;
-    db.writable()?;
-    let left = db.deadline.saturating_sub(started.elapsed());
-    match tokio::time::timeout(left, commit_on(&mut client, session, group)).await {
-        Ok(answers) => answers,
-        Err(_) => {
-            // Mid-transaction: never back into the pool.
-            let _ = Object::take(client);
-            Err(late(db.deadline, "a write, which may or may not have been committed"))
-        }
-    }
-}
-
-async fn commit_on(
-    client: &mut Object,
-    session: &str,
-    group: &[Request],
-) -> Result<Vec<Result<Appended, StoreError>>, StoreError> {
-    let tx = client.transaction().await.map_err(pg_error)?;
-    // The session row's lock orders the groups of a session: seq follows commit order.
-    let row = tx
-        .query_opt("SELECT tbl, version, next_frame_id FROM loopd_sessions WHERE id = $1 FOR UPDATE", &[&session])
-        .await
-        .map_err(pg_error)?
-        .ok_or_else(|| StoreError::SessionNotFound(session.into()))?;
-    let (tbl, mut version, mut next): (i64, i64, i64) = (row.get(0), row.get(1), row.get(2));
-    let sql = format!(
-        "INSERT INTO {} (frame_id, seq, write_id, record, features, thumb) VALUES ($1, $2, $3, $4, $5, $6)",
-        frames_table(tbl)
-    );
-    let insert = tx.prepare(&sql).await.map_err(pg_error)?;
-    let sql = format!("INSERT INTO {} (query_frame, match_frame, record) VALUES ($1, $2, $3)", loops_table(tbl));
-    let insert_loop = tx.prepare(&sql).await.map_err(pg_error)?;
-    let write_id: i64 = rand::random();
-    let mut answers = Vec::with_capacity(group.len());
-    for r in group {
-        let (version_before, next_before) = (version, next);
-        tx.batch_execute("SAVEPOINT request").await.map_err(pg_error)?;
-        // Rows first (ids, seqs, records), then their INSERTs pipelined on the connection.
-        let mut rows = Vec::with_capacity(r.frames.len());
-        let mut refused = None;
-        for f in &r.frames {
-            let Ok(id) = f.frame_id.map_or(Ok(next), i64::try_from) else {
-                refused = Some(StoreError::InvalidArgument("frame id is above 2^63 - 1".into()));
-                break;
-            };
-            next = next.max(id.saturating_add(1));
-            version += 1;
-            let header = FrameHeader {
-                robot_id: f.robot_id.clone(),
-                timestamp: f.timestamp,
-                pose: f.pose,
-                metadata: f.metadata.clone(),
-            };
-            rows.push((id, version, encode_frame(&header, &f.descriptor, r.storage), f));
-        }
-        let mut ids = Vec::with_capacity(rows.len());
-        if refused.is_none() {
-            let params: Vec<[&(dyn ToSql + Sync); 6]> = rows
-                .iter()
-                .map(|(id, seq, record, f)| {
-                    [id as &(dyn ToSql + Sync), seq, &write_id, record, &f.features, &f.thumbnail]
-                })
-                .collect();
-            let inserts = params.iter().map(|p| tx.execute(&insert, p));
-            for (result, (id, _, _, _)) in futures::future::join_all(inserts).await.into_iter().zip(&rows) {
-                match result {
-                    Ok(_) => ids.push(*id as u64),
-                    Err(e) if e.code() == Some(&SqlState::UNIQUE_VIOLATION) => {
-                        refused.get_or_insert(StoreError::FrameExists(session.into(), *id as u64));
-                    }
-                    // The statements after a refused one fail as the transaction is aborted.
-                    Err(e) if e.code() == Some(&SqlState::IN_FAILED_SQL_TRANSACTION) && refused.is_some() => {}
-                    Err(e) => return Err(pg_error(e)),
-                }
-            }
-        }
-        if refused.is_none() && !r.loops.is_empty() {
-            // The loops answered for these frames, in the same savepoint: kept exactly when they are.
-            let rows = r.loops.iter().map(|(at, l)| loop_row(ids[*at], l)).collect::<Result<Vec<_>, _>>()?;
-            let params: Vec<[&(dyn ToSql + Sync); 3]> =
-                rows.iter().map(|(q, m, json)| [q as &(dyn ToSql + Sync), m, json]).collect();
-            let inserts = params.iter().map(|p| tx.execute(&insert_loop, p));
-            for result in futures::future::join_all(inserts).await {
-                result.map_err(pg_error)?;
-            }
-        }
-        match refused {
-            // This request's frames go; the others' stay.
-            Some(e) => {
-                tx.batch_execute("ROLLBACK TO SAVEPOINT request").await.map_err(pg_error)?;
-                (version, next) = (version_before, next_before);
-                answers.push(Err(e));
-            }
-            None => {
-                tx.batch_execute("RELEASE SAVEPOINT request").await.map_err(pg_error)?;
-                answers.push(Ok(Appended { ids, version }));
-            }
-        }
-    }
-    tx.execute(
-        "UPDATE loopd_sessions SET version = $2, next_frame_id = $3 WHERE id = $1",
-        &[&session, &version, &next],
-    )
-    .await
-    .map_err(pg_error)?;
-    tx.commit().await.map_err(pg_error)?;
-    Ok(answers)
 }

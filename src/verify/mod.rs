@@ -7,6 +7,7 @@ pub mod confidence;
 pub mod error;
 pub mod features;
 pub mod geometric;
+mod matching;
 pub mod pool;
 pub mod sequence;
 
