@@ -15,7 +15,8 @@
 //! - `eval/`: `loopd eval` (recall at 100% precision, recall@1, AP, the confidence sweep, plots);
 //!   runs the same search and checks as the server (`index`, `verify::check`).
 //! - `api/`: the network service. `service/` is what both transports do, written once;
-//!   `http/` (axum: router, state, handlers) and `grpc/` (tonic) only translate, and neither
+//!   `http/` (axum: handlers by resource, each carrying its part of the OpenAPI document, and the
+//!   router built from them) and `grpc/` (tonic) only translate, and neither
 //!   imports the other; `wire.rs` holds what both read alike; `tenancy.rs` scopes every call to
 //!   the caller's tenant; `jobs.rs` runs offline sequence jobs (owned by the server, calling the
 //!   service); `kept.rs` and `loops.rs` the kept loop candidates; `server.rs` the wiring and

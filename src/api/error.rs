@@ -13,6 +13,16 @@ const RETRY_AFTER_SECS: &str = "1";
 /// Longest error message sent back (client input echoed in it is cut).
 const MAX_MESSAGE_BYTES: usize = 1024;
 
+/// Every HTTP error's body.
+#[derive(serde::Serialize, utoipa::ToSchema)]
+#[schema(as = Error)]
+pub struct ErrorBody {
+    /// What went wrong (cut at 1 KiB).
+    pub error: String,
+    /// The HTTP status.
+    pub code: u16,
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
     #[error("{0}")]
@@ -160,7 +170,7 @@ impl IntoResponse for ApiError {
         if status.is_server_error() {
             tracing::error!(error = %self, "request failed");
         }
-        let body = Json(serde_json::json!({ "error": self.message(), "code": status.as_u16() }));
+        let body = Json(ErrorBody { error: self.message(), code: status.as_u16() });
         match self {
             // Overload and outages pass: a client knows when to come back.
             ApiError::Overloaded(_) | ApiError::Unavailable(_) => {

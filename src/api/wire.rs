@@ -10,7 +10,9 @@ pub const MAX_JOB_FRAMES: usize = 100_000;
 /// Most bytes of a decompressed ROS 1 bag chunk (rosbag records 768 KiB chunks).
 pub const MAX_BAG_CHUNK_BYTES: usize = 256 << 20;
 
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+/// A loop a sequence job found: the frame and its best candidate, by place in the sequence, name
+/// and frame id.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct LoopClosure {
     pub query_index: usize,
     pub query_name: String,
@@ -33,7 +35,9 @@ pub struct LoopClosure {
     pub sequence_margin: Option<f32>,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+/// Jobs are kept and answer after a restart; one that was running when the server stopped is
+/// `interrupted`.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum JobState {
     Running,
@@ -44,7 +48,8 @@ pub enum JobState {
     Interrupted,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+/// A sequence job's progress and the loops found so far.
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct JobStatus {
     pub job_id: String,
     pub session_id: String,

@@ -8,8 +8,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 /// A tenant's limits; None: unlimited.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(default, deny_unknown_fields)]
+#[schema(as = TenantLimits)]
 pub struct Limits {
     pub max_sessions: Option<u64>,
     pub max_frames: Option<u64>,

@@ -48,7 +48,8 @@ struct TenantRecord {
 }
 
 /// A tenant as listed (no secret, no hash).
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, PartialEq, utoipa::ToSchema)]
+#[schema(as = Tenant)]
 pub struct TenantInfo {
     pub name: String,
     pub key_id: String,

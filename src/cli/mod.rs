@@ -55,6 +55,9 @@ pub enum Command {
     /// A ROS bag (MCAP, rosbag2 folder, ROS 1) as a sequence job on a running server; without
     /// --session, the bag's topics.
     Ingest(ingest::IngestArgs),
+    /// The HTTP API's OpenAPI document (YAML), generated from the routes this build serves:
+    /// `loopd openapi > openapi.yaml`.
+    Openapi,
 }
 
 /// The heads shipped in the repository (trained on the real data here, see docs/training.md).
@@ -157,6 +160,10 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Tenant(a) => tenant::run(a),
         Command::Export(a) => export::run(a),
         Command::Ingest(a) => ingest::run(a),
+        Command::Openapi => {
+            print!("{}", crate::api::http::doc::yaml().map_err(anyhow::Error::msg)?);
+            Ok(ExitCode::SUCCESS)
+        }
     }
 }
 

@@ -2,7 +2,7 @@
 use serde::{Deserialize, Serialize};
 
 /// Which robots' frames a query may match.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Scope {
     /// Every robot, the querying one included.
@@ -15,7 +15,7 @@ pub enum Scope {
 }
 
 /// "Where have we been that looks like this?" Every field has a safe default.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(default)]
 pub struct LoopQuery {
     /// Most matches returned.
@@ -35,7 +35,9 @@ pub struct LoopQuery {
     pub at_time: Option<f64>,
     pub scope: Scope,
     /// Optional inclusive ranges.
+    #[schema(value_type = Option<Vec<f64>>, min_items = 2, max_items = 2)]
     pub time_range: Option<(f64, f64)>,
+    #[schema(value_type = Option<Vec<u64>>, min_items = 2, max_items = 2)]
     pub frame_id_range: Option<(u64, u64)>,
     /// A frame never returned (the stored frame a query is made from); not a client option.
     #[serde(skip)]
@@ -46,7 +48,7 @@ pub struct LoopQuery {
 }
 
 /// Candidate checks a query asks for.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(default)]
 pub struct VerifyOptions {
     /// Check the best candidates with local features and RANSAC.
@@ -162,7 +164,7 @@ impl LoopQuery {
 }
 
 /// A 6-DoF pose: position and unit quaternion (x, y, z, qx, qy, qz, qw).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Pose {
     pub x: f64,
     pub y: f64,
@@ -173,7 +175,9 @@ pub struct Pose {
     pub qw: f64,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// A stored frame found by descriptor: its id, cosine similarity to the query, robot, time and
+/// pose.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Match {
     pub frame_id: u64,
     pub score: f32,

@@ -6,7 +6,8 @@ use serde::Serialize;
 /// Most frames a matrix spans (its cells grow with the square).
 pub const MAX_SIZE: usize = 1024;
 
-#[derive(Debug, Serialize)]
+/// The cosine similarity matrix of frames spread evenly along the session.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct Similarity {
     /// The frames of the rows (and columns), in id order.
     pub frame_ids: Vec<u64>,

@@ -10,7 +10,8 @@ pub const MAX_LOOPS_PER_PAGE: usize = 1000;
 
 /// A rigid transform: the match camera's pose in the query camera's frame (unit quaternion,
 /// translation).
-#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[schema(as = RelativePose)]
 pub struct Transform {
     pub qx: f64,
     pub qy: f64,
@@ -22,7 +23,7 @@ pub struct Transform {
 }
 
 /// A client's judgement of a loop, optionally with its own registration.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct Verdict {
     pub accepted: bool,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -34,7 +35,9 @@ pub struct Verdict {
     pub at: f64,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+/// A kept loop candidate: the pair, what was found when it was answered, and a client's verdict.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[schema(as = Loop)]
 pub struct LoopRecord {
     pub query_frame: u64,
     pub match_frame: u64,
@@ -58,6 +61,7 @@ pub struct LoopRecord {
     pub relative_pose: Option<Transform>,
     /// Up to 100 inlier matches (query x, y, match x, y as fractions of each image's size).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    #[schema(value_type = Vec<Vec<f32>>, max_items = 100)]
     pub inlier_matches: Vec<[f32; 4]>,
     /// Unix seconds it was (last) answered.
     pub found: f64,

@@ -11,14 +11,20 @@ pub mod loops;
 mod operations;
 mod owners;
 pub mod pg;
+mod pg_db;
 mod pg_jobs;
 mod pg_members;
 mod pg_writer;
 pub use owners::{ClusterView, HeldSession, Membership};
+mod error;
 pub mod record;
 mod records;
 mod reopen;
+mod rules;
 mod session;
+pub use error::StoreError;
+use rules::{check_new_frame, new_meta};
+pub use rules::{new_session_id, robot_id_error};
 use session::insert_new;
 
 use crate::index::query::{self, LoopQuery, Match, Pose};
@@ -37,47 +43,6 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::Instant;
 use tokio::sync::Semaphore;
-
-#[derive(Clone, Debug, thiserror::Error, PartialEq)]
-pub enum StoreError {
-    #[error("session '{0}' not found")]
-    SessionNotFound(String),
-    #[error("frame {1} not found in session '{0}'")]
-    FrameNotFound(String, u64),
-    #[error("session '{0}' already exists")]
-    SessionExists(String),
-    #[error("frame {1} already exists in session '{0}'")]
-    FrameExists(String, u64),
-    #[error("{0}")]
-    LoopNotFound(String),
-    #[error("{0}")]
-    InvalidArgument(String),
-    #[error("storage failure: {0}")]
-    Storage(String),
-    #[error("search pool stopped")]
-    Stopped,
-    /// Writes cannot succeed now (a storage failure not yet recovered, or a reopen under way).
-    #[error("{0}")]
-    Unavailable(String),
-}
-
-impl From<query::InvalidQuery> for StoreError {
-    fn from(e: query::InvalidQuery) -> Self {
-        StoreError::InvalidArgument(e.0)
-    }
-}
-
-impl From<crate::index::InvalidDescriptor> for StoreError {
-    fn from(e: crate::index::InvalidDescriptor) -> Self {
-        StoreError::InvalidArgument(e.0.into())
-    }
-}
-
-impl From<sled::Error> for StoreError {
-    fn from(e: sled::Error) -> Self {
-        StoreError::Storage(health::describe(&e))
-    }
-}
 
 /// Largest frame id a client may choose: server-assigned ids count up from the highest stored id
 /// and must never wrap around.
@@ -114,7 +79,7 @@ pub struct NewSession {
 }
 
 /// What a session holds, for listings.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct SessionInfo {
     #[serde(flatten)]
     pub meta: SessionMeta,
@@ -196,21 +161,6 @@ fn thumbs_tree_name(id: &str) -> String {
 /// Every tree a session owns: what deleting it drops.
 fn trees_of(id: &str) -> [String; 4] {
     [session_tree_name(id), features_tree_name(id), loops_tree_name(id), thumbs_tree_name(id)]
-}
-
-/// Letters, digits, '-', '_' and '.', with at least one letter or digit ("." and ".." are path
-/// names, not ids); a tenant's session is stored as `tenant/id` (the API never lets a client
-/// name one with '/').
-fn valid_session_id(id: &str) -> bool {
-    let one = |p: &str| {
-        (1..=64).contains(&p.len())
-            && p.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
-            && p.chars().any(|c| c.is_ascii_alphanumeric())
-    };
-    match id.split_once('/') {
-        None => one(id),
-        Some((tenant, id)) => one(tenant) && one(id),
-    }
 }
 
 /// Where loop searches run.
@@ -470,101 +420,5 @@ impl Store {
     pub fn flush(&self) -> Result<(), StoreError> {
         self.disk()?.db.flush()?;
         Ok(())
-    }
-}
-
-/// A session id picked for a request that names none: `s` and the time in hex (the store's and
-/// a tenant's, which prefixes it).
-pub fn new_session_id() -> String {
-    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
-    format!("s{:x}", now.as_nanos())
-}
-
-/// The one robot id rule: why `robot` is not a robot id (1-128 bytes without control
-/// characters), or None.
-pub fn robot_id_error(robot: &str) -> Option<&'static str> {
-    if robot.is_empty() {
-        Some("robot_id is required")
-    } else if robot.len() > 128 || robot.chars().any(char::is_control) {
-        Some("robot_id must be 1-128 bytes without control characters")
-    } else {
-        None
-    }
-}
-
-/// A new session's metadata, its id checked (or picked by [`new_session_id`]).
-fn new_meta(id: Option<String>, new: NewSession) -> Result<SessionMeta, StoreError> {
-    let NewSession { name, dim, descriptor_id, storage, default_query, camera, thumbnails } = new;
-    if !(1..=65536).contains(&dim) {
-        return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
-    }
-    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
-    let id = id.unwrap_or_else(new_session_id);
-    if !valid_session_id(&id) {
-        return Err(StoreError::InvalidArgument(format!(
-            "session id '{id}' must be 1-64 characters of letters, digits, '-', '_' or '.', with a letter or digit"
-        )));
-    }
-    Ok(SessionMeta {
-        id,
-        name,
-        created: now.as_secs_f64(),
-        dim,
-        descriptor_id,
-        storage,
-        default_query,
-        camera,
-        thumbnails,
-    })
-}
-
-impl NewFrame {
-    /// What the frame record holds beside the descriptor.
-    fn header(&self) -> FrameHeader {
-        FrameHeader {
-            robot_id: self.robot_id.clone(),
-            timestamp: self.timestamp,
-            pose: self.pose,
-            metadata: self.metadata.clone(),
-        }
-    }
-}
-
-/// What a frame must be before anything is written (the dimension, ids and fields).
-fn check_new_frame(s: &Session, f: &NewFrame) -> Result<(), StoreError> {
-    if f.descriptor.len() != s.meta.dim {
-        return Err(StoreError::InvalidArgument(format!(
-            "descriptor has {} values; session '{}' holds {}-d descriptors",
-            f.descriptor.len(),
-            s.meta.id,
-            s.meta.dim
-        )));
-    }
-    if let Some(e) = robot_id_error(&f.robot_id) {
-        return Err(StoreError::InvalidArgument(e.into()));
-    }
-    if !f.timestamp.is_finite() {
-        return Err(StoreError::InvalidArgument("timestamp must be a finite number".into()));
-    }
-    if f.frame_id.is_some_and(|id| id > MAX_CLIENT_FRAME_ID) {
-        return Err(StoreError::InvalidArgument(format!("frame_id must be at most {MAX_CLIENT_FRAME_ID}")));
-    }
-    Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn one_robot_id_rule_in_bytes_without_control_characters() {
-        assert_eq!(robot_id_error(""), Some("robot_id is required"));
-        assert_eq!(robot_id_error(&"r".repeat(128)), None);
-        assert!(robot_id_error(&"r".repeat(129)).is_some());
-        // 64 two-byte characters are 128 bytes; one more is over, in bytes.
-        assert_eq!(robot_id_error(&"é".repeat(64)), None);
-        assert!(robot_id_error(&"é".repeat(65)).is_some());
-        assert!(robot_id_error("robot\n1").is_some());
-        assert!(new_session_id().starts_with('s') && valid_session_id(&new_session_id()));
     }
 }

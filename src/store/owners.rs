@@ -27,7 +27,7 @@ pub struct Membership {
 }
 
 /// What `GET /v1/cluster` shows: the members this node sees and the sessions it holds.
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, utoipa::ToSchema)]
 pub struct ClusterView {
     pub node: String,
     pub owners: usize,
@@ -35,7 +35,7 @@ pub struct ClusterView {
     pub held: Vec<HeldSession>,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct HeldSession {
     pub session: String,
     pub frames: usize,

@@ -1,7 +1,8 @@
 //! Sequence jobs' records in the log, so a job started through one node is polled through any:
 //! `loopd_jobs(id, n, node, record, updated)`, numbered by the log's sequence (unique across
 //! nodes) and written by the node that runs the job.
-use super::pg::{pg_error, PgLog};
+use super::pg::PgLog;
+use super::pg_db::pg_error;
 use super::StoreError;
 
 /// A job's record as the log holds it, and the node that runs (or ran) it.

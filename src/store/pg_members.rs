@@ -1,7 +1,8 @@
 //! Cluster membership in the log: each node writes a heartbeat row, and the live members are
 //! those seen within a time-to-live by the database's clock (no clock agreement between nodes).
 //! A wrong view costs only a cold load, never a wrong answer, so there is no fencing.
-use super::pg::{pg_error, PgLog};
+use super::pg::PgLog;
+use super::pg_db::pg_error;
 use super::StoreError;
 use std::time::Duration;
 

@@ -2,7 +2,7 @@
 //! them as one transaction under the session row's lock, each request all or none under its own
 //! savepoint, within the log's deadline (`LogConfig::deadline`).
 use super::loops::LoopRecord;
-use super::pg::{frames_table, late, loop_row, loops_table, pg_error, Appended, Db};
+use super::pg_db::{frames_table, late, loop_row, loops_table, pg_error, Appended, Db};
 use super::record::{encode_frame, FrameHeader};
 use super::{NewFrame, StoreError};
 use crate::index::Storage;

@@ -2,7 +2,8 @@
 use crate::index::query::Pose;
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// A session as created: its id, name, descriptor space and defaults.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct SessionMeta {
     pub id: String,
     pub name: String,
@@ -23,7 +24,7 @@ pub struct SessionMeta {
 }
 
 /// Pinhole intrinsics in pixels, with optional radial-tangential distortion (k1 k2 p1 p2 k3).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Camera {
     pub fx: f64,
@@ -31,6 +32,7 @@ pub struct Camera {
     pub cx: f64,
     pub cy: f64,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<f64>>, min_items = 5, max_items = 5)]
     pub distortion: Option<[f64; 5]>,
 }
 

@@ -2,111 +2,24 @@
 //! multi-similarity loss, AdamW with warm-up and cosine decay, validation through `loopd eval`'s
 //! code every epoch, early stopping, checkpoints, curves; then optional PCA whitening.
 use super::augment::{self, Strength};
+pub use super::checkpoint::State;
+use super::checkpoint::{is_trained, plot, save_state, write_heads};
 use super::data::TrainSet;
-use super::loss::{multi_similarity, MsParams};
+use super::loss::multi_similarity;
 use super::sampler::epoch_batches;
-use super::whiten;
-use crate::engine::{Engine, EngineConfig};
-use crate::eval::plots;
-use crate::eval::run::{embed_files, evaluate_sequences, EmbedSetup, EvalSpec};
+pub use super::spec::{Recipe, TrainSpec, ValSet, WhitenSpec};
+use super::validate::{fit_whitening, keeps_r_at_100p, load_model, log_validation, selection_score};
+pub use super::validate::{validate, ValScore};
 use crate::model::config::ModelConfig;
-use crate::model::device::DType;
-use crate::model::heads::{self, Whitening};
-use crate::model::network::{Variant, HEAD_PREFIXES};
+use crate::model::network::Variant;
 use crate::model::preprocess::{decode, normalize, resized_rgb, ImageLimits};
-use crate::model::weights::WeightFile;
 use crate::model::Model;
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rand::{rngs::StdRng, SeedableRng};
-use serde::{Deserialize, Serialize};
-use std::collections::HashMap;
-use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use tch::{nn::OptimizerConfig, Device, Tensor};
-
-/// A validation set: evaluated with `loopd eval`'s code, never trained on.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct ValSet {
-    pub name: String,
-    pub sequence: PathBuf,
-    pub query_sequence: Option<PathBuf>,
-    pub gt: String,
-    pub tolerance: usize,
-    pub exclude: usize,
-    pub range: Option<Range<usize>>,
-    pub filter: Option<String>,
-}
-
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct Recipe {
-    pub epochs: usize,
-    pub places_per_batch: usize,
-    pub views: usize,
-    pub lr: f64,
-    pub weight_decay: f64,
-    pub warmup_steps: usize,
-    pub clip_norm: f64,
-    pub seed: u64,
-    pub steps_per_epoch: Option<usize>,
-    /// Epochs without a better validation score before stopping.
-    pub patience: usize,
-    pub train_layer4: bool,
-    /// Light augmentation of labelled views too.
-    pub augment_labelled: bool,
-    pub loss: MsParams,
-}
-
-#[derive(Clone, Debug)]
-pub struct WhitenSpec {
-    pub dim: Option<i64>,
-    /// At most this many training frames (evenly spaced) are embedded to fit it.
-    pub frames: usize,
-    pub shrink: f64,
-}
-
-pub struct TrainSpec {
-    pub weights: PathBuf,
-    pub init_heads: Option<PathBuf>,
-    /// Network configuration while training (input size: cost per step).
-    pub config: ModelConfig,
-    /// Configuration for validation and the whitening fit (the size the heads will serve at).
-    pub val_config: ModelConfig,
-    pub device: Device,
-    pub set: TrainSet,
-    pub val: Vec<ValSet>,
-    pub out: PathBuf,
-    pub recipe: Recipe,
-    pub whiten: Option<WhitenSpec>,
-    pub resume: bool,
-    /// Descriptor cache shared with `loopd eval` (keys include the heads' hash).
-    pub cache_dir: Option<PathBuf>,
-}
-
-/// One validation of one set.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct ValScore {
-    pub set: String,
-    pub recall_at_100_precision: f64,
-    pub recall_at_1: f64,
-    pub average_precision: f64,
-}
-
-/// Everything a resumed run needs, saved after each epoch beside `checkpoint.safetensors`.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct State {
-    pub epochs_done: usize,
-    pub step: usize,
-    /// (step, loss) of every step.
-    pub losses: Vec<(usize, f64)>,
-    /// Per epoch (0 = before training): each set's scores.
-    pub validation: Vec<Vec<ValScore>>,
-    pub best_epoch: usize,
-    pub best_score: f64,
-    pub seconds: f64,
-    pub images: usize,
-}
+use tch::{nn::OptimizerConfig, Tensor};
 
 /// What `train` produced.
 pub struct Outcome {
@@ -114,94 +27,6 @@ pub struct Outcome {
     pub state: State,
     /// Validation of the final file (with whitening, if fitted).
     pub final_validation: Vec<ValScore>,
-}
-
-/// The model-selection score: mean recall@1 over the validation sets (AP breaks ties), among
-/// the epochs that pass [`keeps_r_at_100p`].
-fn selection_score(v: &[ValScore]) -> f64 {
-    let n = v.len().max(1) as f64;
-    v.iter().map(|s| s.recall_at_1 + 1e-3 * s.average_precision).sum::<f64>() / n
-}
-
-/// The shipping rule's first part: no validation set loses recall at 100% precision against the
-/// heads training started from (epoch 0). A better ranking within queries must not cost the
-/// scores' meaning across queries (docs/training.md).
-fn keeps_r_at_100p(v: &[ValScore], start: &[ValScore]) -> bool {
-    v.iter().zip(start).all(|(a, b)| a.recall_at_100_precision + 1e-9 >= b.recall_at_100_precision)
-}
-
-fn is_trained(name: &str, layer4: bool) -> bool {
-    HEAD_PREFIXES.iter().any(|p| name.starts_with(p)) || (layer4 && name.starts_with("layer4."))
-}
-
-/// The trained tensors of a model (what a heads file holds), sorted by name.
-fn trained_tensors(model: &Model, layer4: bool) -> Vec<(String, Tensor)> {
-    let mut v: Vec<(String, Tensor)> = model
-        .var_store()
-        .variables()
-        .into_iter()
-        .filter(|(n, _)| is_trained(n, layer4))
-        .map(|(n, t)| (n, t.detach().to_device(Device::Cpu)))
-        .collect();
-    v.sort_by(|a, b| a.0.cmp(&b.0));
-    v
-}
-
-fn load_model(spec: &TrainSpec, config: &ModelConfig, heads: Option<&Path>) -> Result<Model> {
-    let (mut model, _) = Model::load(&spec.weights, config.clone(), spec.device, DType::F32)
-        .with_context(|| format!("loading weights {}", spec.weights.display()))?;
-    if let Some(h) = heads {
-        model.load_heads(h).with_context(|| format!("loading heads {}", h.display()))?;
-    }
-    Ok(model)
-}
-
-/// An engine for `loopd eval`'s embedding code (validation, whitening frames), with its setup.
-fn embedding_engine(spec: &TrainSpec, model: Model) -> Result<(Engine, EmbedSetup<'_>)> {
-    let cfg = EngineConfig { max_batch: 16, warm_up: false, ..Default::default() };
-    let setup = EmbedSetup {
-        weights: &spec.weights,
-        variant: Variant::FULL,
-        cache_dir: spec.cache_dir.as_deref(),
-        max_batch: cfg.max_batch,
-    };
-    Ok((Engine::start(model, cfg, ImageLimits::default())?, setup))
-}
-
-/// Validates a heads file on every validation set through `loopd eval`'s code.
-pub fn validate(spec: &TrainSpec, heads: Option<&Path>) -> Result<Vec<ValScore>> {
-    if spec.val.is_empty() {
-        return Ok(Vec::new());
-    }
-    let (engine, setup) = embedding_engine(spec, load_model(spec, &spec.val_config, heads)?)?;
-    spec.val
-        .iter()
-        .map(|v| {
-            let es = EvalSpec {
-                verify: None,
-                intrinsics: None,
-                sequence: &v.sequence,
-                query_sequence: v.query_sequence.as_deref(),
-                gt: &v.gt,
-                camera: None,
-                tolerance: v.tolerance,
-                exclude: v.exclude,
-                out: None,
-                filter: v.filter.as_deref(),
-                range: v.range.clone(),
-                calibrator: None,
-                samples_out: None,
-            };
-            let r =
-                evaluate_sequences(&engine, &es, &setup).with_context(|| format!("validation set {}", v.name))?.report;
-            Ok(ValScore {
-                set: v.name.clone(),
-                recall_at_100_precision: r.recall_at_100_precision,
-                recall_at_1: r.recall_at_1,
-                average_precision: r.average_precision,
-            })
-        })
-        .collect()
 }
 
 /// Reads, decodes and resizes one training image (RGB 0-255 tensor).
@@ -281,73 +106,6 @@ fn clip_gradients(params: &[Tensor], max: f64) -> f64 {
         }
         norm
     })
-}
-
-fn write_heads(
-    spec: &TrainSpec,
-    path: &Path,
-    model: &Model,
-    w: Option<&Whitening>,
-    extra: &[(&str, String)],
-) -> Result<()> {
-    let mut meta = HashMap::new();
-    meta.insert(
-        heads::META_POOLING.into(),
-        serde_json::to_value(spec.config.pooling)?.as_str().unwrap_or("gap").into(),
-    );
-    meta.insert("datasets".into(), spec.set.sources.join("; "));
-    meta.insert("recipe".into(), serde_json::to_string(&spec.recipe)?);
-    let size = |c: &ModelConfig| format!("{}x{}", c.preprocess.width, c.preprocess.height);
-    meta.insert("train_input_size".into(), size(&spec.config));
-    meta.insert("validation_input_size".into(), size(&spec.val_config));
-    for (k, v) in extra {
-        meta.insert((*k).into(), v.clone());
-    }
-    // Provenance of heads this run started from (their data, recipe, steps), if any.
-    if let Some(init) = &spec.init_heads {
-        let mut m = WeightFile::read(init)?.metadata;
-        m.remove(heads::META_BACKBONE_SHA256);
-        meta.insert("init_heads".into(), serde_json::to_string(&m)?);
-    }
-    heads::write(path, trained_tensors(model, spec.recipe.train_layer4), w, &model.weights_sha256, meta)
-}
-
-fn plot(out: &Path, st: &State) -> Result<()> {
-    let raw: Vec<(f64, f64)> = st.losses.iter().map(|&(s, l)| (s as f64, l)).collect();
-    // A running mean over 20 steps shows the trend under the batch-to-batch noise.
-    let smooth: Vec<(f64, f64)> = raw
-        .iter()
-        .enumerate()
-        .map(|(i, &(s, _))| {
-            let w = &raw[i.saturating_sub(19)..=i];
-            (s, w.iter().map(|p| p.1).sum::<f64>() / w.len() as f64)
-        })
-        .collect();
-    plots::lines(
-        &out.join("loss.png"),
-        "training loss (multi-similarity)",
-        ("step", "loss"),
-        &[("loss".into(), raw), ("mean of 20".into(), smooth)],
-    )?;
-    let mut series = Vec::new();
-    let names: Vec<String> =
-        st.validation.first().map(|v| v.iter().map(|s| s.set.clone()).collect()).unwrap_or_default();
-    for (i, name) in names.iter().enumerate() {
-        let pick = |f: fn(&ValScore) -> f64| -> Vec<(f64, f64)> {
-            st.validation.iter().enumerate().filter_map(|(e, v)| v.get(i).map(|s| (e as f64, f(s)))).collect()
-        };
-        series.push((format!("{name} recall@1"), pick(|s| s.recall_at_1)));
-        series.push((format!("{name} AP"), pick(|s| s.average_precision)));
-        series.push((format!("{name} R@100P"), pick(|s| s.recall_at_100_precision)));
-    }
-    plots::lines(&out.join("validation.png"), "validation (epoch 0 = before training)", ("epoch", "score"), &series)
-}
-
-fn save_state(out: &Path, st: &State) -> Result<()> {
-    let tmp = out.join("state.json.partial");
-    std::fs::write(&tmp, serde_json::to_vec_pretty(st)?)?;
-    std::fs::rename(&tmp, out.join("state.json"))?;
-    Ok(())
 }
 
 /// Trains; writes `heads.safetensors` (best validation epoch, whitened if asked), the checkpoint,
@@ -493,34 +251,4 @@ pub fn train(spec: &TrainSpec) -> Result<Outcome> {
     save_state(&spec.out, &st)?;
     plot(&spec.out, &st)?;
     Ok(Outcome { heads: final_path, state: st, final_validation })
-}
-
-fn log_validation(epoch: usize, v: &[ValScore]) {
-    for s in v {
-        tracing::info!(
-            epoch,
-            set = %s.set,
-            r100p = s.recall_at_100_precision,
-            recall1 = s.recall_at_1,
-            ap = s.average_precision,
-            "validation"
-        );
-    }
-}
-
-/// Embeds up to `w.frames` training frames with the given heads (through the engine, as `loopd
-/// eval` does) and fits the whitening on them.
-fn fit_whitening(spec: &TrainSpec, heads_path: &Path, w: &WhitenSpec) -> Result<Whitening> {
-    let mut model = load_model(spec, &spec.val_config, Some(heads_path))?;
-    model.set_whitening(None);
-    let n = spec.set.samples.len();
-    let step = n.div_ceil(w.frames.max(1)).max(1);
-    let files: Vec<PathBuf> = spec.set.samples.iter().step_by(step).map(|s| s.path.clone()).collect();
-    let (engine, setup) = embedding_engine(spec, model)?;
-    let rows = embed_files(&engine, &files, &setup, "whitening frames")?;
-    let flat: Vec<f32> = rows.iter().flatten().copied().collect();
-    let dim = rows.first().map_or(0, Vec::len) as i64;
-    let x = Tensor::from_slice(&flat).reshape([rows.len() as i64, dim]);
-    tracing::info!(frames = rows.len(), dim = ?w.dim, "fitting whitening");
-    whiten::fit(&x, w.dim, w.shrink)
 }

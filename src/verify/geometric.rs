@@ -14,6 +14,7 @@ use opencv::prelude::*;
 use super::error::VerifyError;
 use super::features::Features;
 use super::matching::ratio_matches;
+pub use super::matching::Matcher;
 
 /// Fewer correspondences than this cannot constrain F (8-point) robustly.
 const MIN_POINTS: usize = 8;
@@ -78,16 +79,6 @@ pub struct VerifyParams {
     pub matcher: Matcher,
 }
 
-/// Both are exhaustive Hamming 2-NN. Debian's OpenCV 4.6 is built with an SSE2 baseline and
-/// does not dispatch the Hamming kernel, so BFMatcher is ~4x slower than the plain scan.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Matcher {
-    /// Plain-Rust scan over u64 words with `count_ones` (default).
-    Scan,
-    /// OpenCV `BFMatcher(NORM_HAMMING).knnMatch(k = 2)`.
-    OpenCv,
-}
-
 /// Robust estimator used for F / E.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Robust {
@@ -127,7 +118,8 @@ impl Default for VerifyParams {
     }
 }
 
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+/// A checked candidate: ORB matches after the ratio test, RANSAC inliers, and the verdict.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, utoipa::ToSchema)]
 pub struct Verification {
     /// Matches surviving the ratio test (one per candidate keypoint).
     pub matches: usize,

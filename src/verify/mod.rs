@@ -21,7 +21,7 @@ use serde::Serialize;
 
 /// A loop candidate as both APIs and `loopd eval` see it: the descriptor match and, when the
 /// candidate was checked, the outcome (inliers, verified, relative pose).
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct LoopMatch {
     #[serde(flatten)]
     pub m: Match,

@@ -16,7 +16,7 @@ pub const VOTES: usize = 5;
 pub const POOL: usize = 20;
 
 /// The outcome for one candidate.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, utoipa::ToSchema)]
 pub struct SequenceCheck {
     /// Mean z-scored similarity along the diagonal (each history frame's similarity to the
     /// candidate's aligned frame, in units of its own similarities to the map).

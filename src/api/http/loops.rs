@@ -1,4 +1,5 @@
 //! HTTP routes of kept loops: a paged, filtered listing and a client's verdict.
+use super::doc::{BadRequest, NotFound, Unauthorized, Unavailable};
 use super::state::{json_error, parse_u64, AppState};
 use crate::api::error::ApiError;
 use crate::api::wire::cursor;
@@ -13,27 +14,46 @@ use std::sync::Arc;
 /// Loops per page unless `limit` says otherwise.
 const DEFAULT_PAGE: usize = 100;
 
-#[derive(Deserialize)]
+#[derive(Deserialize, utoipa::IntoParams)]
 #[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
 pub struct LoopParams {
+    /// Loops with this robot on either side.
     robot: Option<String>,
     min_score: Option<f32>,
+    /// Loops answered with at least this calibrated confidence.
     min_confidence: Option<f32>,
     verified: Option<bool>,
+    /// The query frame's time, from.
     time_from: Option<f64>,
+    /// The query frame's time, to.
     time_to: Option<f64>,
     /// `QUERY-MATCH`: the `next` of the previous page.
+    #[param(pattern = "^[0-9]+-[0-9]+$")]
     after: Option<String>,
+    /// Loops per page (default 100).
+    #[param(minimum = 1, maximum = 1000)]
     limit: Option<usize>,
 }
 
-#[derive(Serialize)]
+/// One page of kept loops.
+#[derive(Serialize, utoipa::ToSchema)]
 pub struct LoopPage {
     loops: Vec<LoopRecord>,
     /// Where the next page starts (`after=`), or null on the last page.
     next: Option<String>,
 }
 
+/// Kept loop candidates (every candidate answered for a stored frame), in frame order, paged
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}/loops", tag = "loops",
+    params(("id" = String, Path), LoopParams),
+    responses(
+        (status = 200, description = "One page.", body = LoopPage),
+        (status = 400, response = BadRequest), (status = 401, response = Unauthorized),
+        (status = 404, response = NotFound), (status = 503, response = Unavailable),
+    )
+)]
 pub async fn list_loops(
     State(s): State<Arc<AppState>>,
     Extension(caller): Extension<Caller>,
@@ -55,14 +75,28 @@ pub async fn list_loops(
     Ok(Json(LoopPage { loops, next: next.map(|(q, m)| format!("{q}-{m}")) }))
 }
 
-#[derive(Deserialize)]
+/// A client's verdict on a kept loop, optionally with its own registration.
+#[derive(Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct VerdictBody {
     accepted: bool,
     relative_pose: Option<Transform>,
+    /// 6x6 row-major covariance of the relative pose (x y z, then rotation).
+    #[schema(min_items = 36, max_items = 36)]
     covariance: Option<Vec<f64>>,
 }
 
+/// A client's verdict on a kept loop (accept or reject), optionally with its own relative pose and covariance
+#[utoipa::path(
+    post, path = "/v1/sessions/{id}/loops/{query_frame}/{match_frame}/verdict", tag = "loops",
+    params(("id" = String, Path), ("query_frame" = u64, Path), ("match_frame" = u64, Path)),
+    request_body = VerdictBody,
+    responses(
+        (status = 200, description = "The loop with its verdict.", body = LoopRecord),
+        (status = 400, response = BadRequest), (status = 401, response = Unauthorized),
+        (status = 404, response = NotFound), (status = 503, response = Unavailable),
+    )
+)]
 pub async fn set_verdict(
     State(s): State<Arc<AppState>>,
     Extension(caller): Extension<Caller>,
@@ -75,16 +109,34 @@ pub async fn set_verdict(
     Ok(Json(scoped.set_verdict(&id, pair, v.accepted, v.relative_pose, v.covariance).await?))
 }
 
-#[derive(Deserialize)]
+#[derive(Deserialize, utoipa::IntoParams)]
 #[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
 pub struct ExportParams {
+    /// Default 0.1.
+    #[param(exclusive_minimum = 0, maximum = 1000000)]
     odometry_sigma_m: Option<f64>,
+    /// Default 0.01.
+    #[param(exclusive_minimum = 0, maximum = 1000000)]
     odometry_sigma_rad: Option<f64>,
+    /// For accepted loops given without a covariance (default 0.2).
+    #[param(exclusive_minimum = 0, maximum = 1000000)]
     loop_sigma_m: Option<f64>,
+    /// Default 0.02.
+    #[param(exclusive_minimum = 0, maximum = 1000000)]
     loop_sigma_rad: Option<f64>,
 }
 
-/// The session's loop graph as a tar (frames.csv, loops.csv, graph.g2o, one TUM file per robot).
+/// The session's loop graph as a tar: frames.csv, loops.csv, graph.g2o (g2o SE3:QUAT), trajectories/<robot>.tum
+#[utoipa::path(
+    get, path = "/v1/sessions/{id}/export", tag = "loops",
+    params(("id" = String, Path), ExportParams),
+    responses(
+        (status = 200, description = "The tar.", body = super::doc::Binary, content_type = "application/x-tar"),
+        (status = 400, response = BadRequest), (status = 401, response = Unauthorized),
+        (status = 404, response = NotFound), (status = 503, response = Unavailable),
+    )
+)]
 pub async fn export(
     State(s): State<Arc<AppState>>,
     Extension(caller): Extension<Caller>,

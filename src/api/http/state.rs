@@ -19,12 +19,15 @@ pub struct AppState {
 }
 
 /// A stored frame as HTTP answers it (one frame, or each of a listing's).
-#[derive(Serialize)]
+#[derive(Serialize, utoipa::ToSchema)]
+#[schema(as = Frame)]
 pub struct FrameView {
     frame_id: u64,
     robot_id: String,
     timestamp: f64,
     pose: Option<Pose>,
+    /// The JSON object stored with the frame.
+    #[schema(value_type = Option<Object>)]
     metadata: Option<serde_json::Value>,
 }
 

@@ -68,27 +68,35 @@ pub enum Content {
 }
 
 /// Query options as sent: unset fields fall back to the session's defaults.
-#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq, utoipa::ToSchema)]
 #[serde(default, deny_unknown_fields)]
+#[schema(as = QueryOptions)]
 pub struct QueryOverrides {
+    #[schema(minimum = 1, maximum = 1000)]
     pub k: Option<usize>,
     pub min_score: Option<f32>,
     /// Candidates below this calibrated confidence are not returned.
+    #[schema(minimum = 0, maximum = 1)]
     pub min_confidence: Option<f32>,
     pub exclude_last_frames: Option<usize>,
     pub exclude_last_seconds: Option<f64>,
     pub scope: Option<Scope>,
+    #[schema(value_type = Option<Vec<f64>>, min_items = 2, max_items = 2)]
     pub time_range: Option<(f64, f64)>,
+    #[schema(value_type = Option<Vec<u64>>, min_items = 2, max_items = 2)]
     pub frame_id_range: Option<(u64, u64)>,
     /// Geometric verification of the best candidates on or off.
     pub verify: Option<bool>,
     /// How many candidates are checked (K).
+    #[schema(minimum = 1, maximum = 50)]
     pub verify_candidates: Option<usize>,
     /// Inliers needed for a verified loop.
+    #[schema(minimum = 8, maximum = 10000)]
     pub min_inliers: Option<usize>,
     /// Sequence verification on or off.
     pub sequence: Option<bool>,
     /// Frames compared along the trajectories (L).
+    #[schema(minimum = 1, maximum = 200)]
     pub sequence_length: Option<usize>,
     /// Margin for a sequence-verified loop.
     pub min_sequence_margin: Option<f32>,
@@ -258,7 +266,8 @@ pub enum QueryTarget {
     Frame(u64),
 }
 
-#[derive(Clone, Debug, Default, Deserialize, Serialize)]
+/// A new session: unset fields take their defaults (the server picks the id).
+#[derive(Clone, Debug, Default, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct CreateSession {
     pub id: Option<String>,

@@ -2,6 +2,7 @@ mod confidence;
 mod inspect;
 mod jobs;
 mod loops;
+mod openapi;
 mod server;
 mod tenants;
 mod tls;

@@ -1,0 +1,202 @@
+//! The cluster log's connections: the pool and its deadline, which primary they reach and whether
+//! its commits wait for a synchronous standby (the check of every new connection), how database
+//! errors read as store errors, and the names and rows of a session's tables. `pg.rs` (the log's
+//! reads and sessions) and `pg_writer.rs` (its write path) both stand on it.
+use super::loops::LoopRecord;
+use super::StoreError;
+use deadpool_postgres::{Object, Pool};
+use std::sync::atomic::{AtomicU64, Ordering::SeqCst};
+use tokio_postgres::error::SqlState;
+
+/// Whether the server must make each commit wait for a synchronous standby.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Replication {
+    Synchronous,
+    /// Tests and single-host trials only: an acknowledged frame may be lost with the primary.
+    NotRequired,
+}
+
+/// How a node reaches the log: its connections, whether commits must wait for a synchronous
+/// standby, and the deadline of every wait on the database.
+#[derive(Clone, Copy, Debug)]
+pub struct LogConfig {
+    pub connections: usize,
+    pub replication: Replication,
+    /// The longest a call waits on the database: a connection taken or opened, a statement,
+    /// a write's whole transaction up to its COMMIT. Past it the call answers Unavailable and its
+    /// connection is dropped (the next call opens one, which finds the primary of now).
+    pub deadline: std::time::Duration,
+}
+
+impl LogConfig {
+    /// `connections` to the log, with the default deadline of 10 s.
+    pub fn new(connections: usize, replication: Replication) -> Self {
+        Self { connections, replication, deadline: std::time::Duration::from_secs(10) }
+    }
+}
+
+/// The connections, and what the log knows of the primary behind them.
+pub(super) struct Db {
+    pub(super) pool: Pool,
+    pub(super) replication: Replication,
+    /// See [`LogConfig::deadline`].
+    pub(super) deadline: std::time::Duration,
+    /// The primary new connections last reached: its address, port and start time.
+    pub(super) primary: parking_lot::Mutex<Option<String>>,
+    /// Counts changes of primary (a failover, or a restart): frames read from an earlier primary
+    /// may be missing from this one (visible there before a standby had them), so nodes drop
+    /// what they applied before the change (`epoch`).
+    pub(super) epoch: AtomicU64,
+    /// Why writes are refused now: the primary does not wait for a synchronous standby.
+    pub(super) unreplicated: parking_lot::Mutex<Option<Unreplicated>>,
+}
+
+/// Why the primary is not writable for loopd, and whether waiting can change it (a standby
+/// coming back) or only a configuration can.
+#[derive(Clone, Debug)]
+pub(super) struct Unreplicated {
+    pub(super) why: String,
+    pub(super) transient: bool,
+}
+
+/// A batch as committed: the frames' ids in order, and the session's version after it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Appended {
+    pub ids: Vec<u64>,
+    pub version: i64,
+}
+
+/// Transient: the database cannot be reached or is switching primaries; retry later. A commit
+/// whose answer was lost may or may not have happened: frames with ids make the retry exact
+/// (a stored one answers already-exists).
+pub(super) fn unavailable(e: &tokio_postgres::Error) -> StoreError {
+    StoreError::Unavailable(format!("the cluster database is unavailable ({e}); retry later"))
+}
+
+pub(super) fn pg_error(e: tokio_postgres::Error) -> StoreError {
+    match e.as_db_error() {
+        // A server that is read-only (a standby), shutting down, crashed, starting or out of
+        // connections: another primary or a retry will answer.
+        Some(db)
+            if *db.code() == SqlState::READ_ONLY_SQL_TRANSACTION
+                || ["08", "53", "57"].iter().any(|class| db.code().code().starts_with(class)) =>
+        {
+            unavailable(&e)
+        }
+        // Other server-side errors are answers: the statement ran and was refused.
+        Some(db) => StoreError::Storage(format!("database: {}", db.message())),
+        None => unavailable(&e),
+    }
+}
+
+/// A call that ran past the log's deadline (a cut-off or frozen primary, a commit waiting for a
+/// standby that does not answer).
+pub(super) fn late(deadline: std::time::Duration, what: &str) -> StoreError {
+    StoreError::Unavailable(format!("the cluster database did not answer within {deadline:?} ({what}); retry later"))
+}
+
+pub(super) fn pool_error(e: deadpool_postgres::PoolError) -> StoreError {
+    match e {
+        deadpool_postgres::PoolError::Backend(e) => pg_error(e),
+        deadpool_postgres::PoolError::Timeout(_) => {
+            StoreError::Unavailable("the cluster database did not answer in time (a connection); retry later".into())
+        }
+        other => StoreError::Unavailable(format!("the cluster database is unavailable ({other}); retry later")),
+    }
+}
+
+impl Db {
+    /// A pooled connection; a new one first says which primary it reached (a change bumps the
+    /// epoch) and whether its commits wait for a synchronous standby.
+    pub(super) async fn client(&self) -> Result<Object, StoreError> {
+        let client = self.pool.get().await.map_err(pool_error)?;
+        if Object::metrics(&client).recycle_count > 0 {
+            return Ok(client);
+        }
+        let checked = tokio::time::timeout(self.deadline, self.check(&client))
+            .await
+            .unwrap_or_else(|_| Err(late(self.deadline, "checking a new connection")));
+        match checked {
+            Ok(()) => Ok(client),
+            Err(e) => {
+                // Never back into the pool unchecked.
+                let _ = Object::take(client);
+                Err(e)
+            }
+        }
+    }
+
+    pub(super) async fn check(&self, client: &Object) -> Result<(), StoreError> {
+        // The standbys that really are there: streaming and synchronous (pg_stat_replication),
+        // not only named in the setting (Patroni's strict mode names '*' with none left).
+        let sql = "SELECT pg_postmaster_start_time()::text || ' ' || coalesce(host(inet_server_addr()), 'socket') \
+                   || ':' || coalesce(inet_server_port(), 0)::text, current_setting('synchronous_commit'), \
+                   current_setting('synchronous_standby_names'), pg_is_in_recovery(), \
+                   (SELECT count(*) FROM pg_stat_replication \
+                    WHERE state = 'streaming' AND sync_state IN ('sync', 'quorum')), \
+                   pg_has_role(current_user, 'pg_read_all_stats', 'USAGE')";
+        let row = client.query_one(sql, &[]).await.map_err(pg_error)?;
+        let (primary, commit, standbys, recovering, streaming, sees): (String, String, String, bool, i64, bool) =
+            (row.get(0), row.get(1), row.get(2), row.get(3), row.get(4), row.get(5));
+        if recovering {
+            return Err(StoreError::Unavailable(format!("{primary} is a standby, not the primary; retry later")));
+        }
+        let configured =
+            !standbys.trim().is_empty() && matches!(commit.as_str(), "on" | "remote_write" | "remote_apply");
+        *self.unreplicated.lock() = match self.replication {
+            Replication::NotRequired => None,
+            Replication::Synchronous if !configured => Some(Unreplicated {
+                why: format!(
+                    "the cluster database does not wait for a synchronous standby (synchronous_commit = {commit}, \
+                     synchronous_standby_names = '{standbys}'): an acknowledged frame could be lost with the primary"
+                ),
+                transient: false,
+            }),
+            Replication::Synchronous if !sees => Some(Unreplicated {
+                why: "loopd's database role cannot read pg_stat_replication, so it cannot tell whether a \
+                      synchronous standby is streaming (GRANT pg_monitor to it)"
+                    .into(),
+                transient: false,
+            }),
+            Replication::Synchronous if streaming == 0 => Some(Unreplicated {
+                why: format!(
+                    "no synchronous standby is streaming from the primary (pg_stat_replication; \
+                     synchronous_standby_names = '{standbys}'): a commit would wait until one is back"
+                ),
+                transient: true,
+            }),
+            Replication::Synchronous => None,
+        };
+        let mut known = self.primary.lock();
+        if known.as_ref().is_some_and(|p| *p != primary) {
+            let epoch = self.epoch.fetch_add(1, SeqCst) + 1;
+            tracing::warn!(%primary, epoch, "the cluster database has another primary: cached sessions are reloaded");
+        }
+        *known = Some(primary);
+        Ok(())
+    }
+
+    /// Unavailable while the primary does not wait for a synchronous standby.
+    pub(super) fn writable(&self) -> Result<(), StoreError> {
+        match self.unreplicated.lock().clone() {
+            Some(u) => Err(StoreError::Unavailable(format!("writes refused: {}", u.why))),
+            None => Ok(()),
+        }
+    }
+}
+
+pub(super) fn frames_table(tbl: i64) -> String {
+    format!("loopd_frames_{tbl}")
+}
+
+/// The session's kept loops (`loops.rs` records as JSON), by (query frame, match frame).
+pub(super) fn loops_table(tbl: i64) -> String {
+    format!("loopd_loops_{tbl}")
+}
+
+/// A loop table row: the loop as kept for the frame `query` (its key and its JSON).
+pub(super) fn loop_row(query: u64, l: &LoopRecord) -> Result<(i64, i64, serde_json::Value), StoreError> {
+    let json = serde_json::to_value(LoopRecord { query_frame: query, ..l.clone() })
+        .map_err(|e| StoreError::Storage(e.to_string()))?;
+    Ok((query as i64, l.match_frame as i64, json))
+}
