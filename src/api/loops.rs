@@ -19,26 +19,24 @@ impl LoopService {
         }
     }
 
-    pub fn loops(&self, session: &str, filter: &LoopFilter) -> Result<Page, ApiError> {
-        Ok(self.store.session(session)?.loops(filter)?)
+    pub fn loops(&self, s: &Session, filter: &LoopFilter) -> Result<Page, ApiError> {
+        Ok(s.loops(filter)?)
     }
 
     /// A session's frames and kept loops as of now, for an export.
-    pub fn snapshot(&self, session: &str) -> Result<crate::export::Snapshot, ApiError> {
-        let s = self.store.session(session)?;
+    pub fn snapshot(&self, s: &Session) -> Result<crate::export::Snapshot, ApiError> {
         Ok(crate::export::Snapshot { frames: s.headers()?, loops: s.all_loops()? })
     }
 
     pub async fn set_verdict(
         &self,
-        session: &str,
+        s: &Arc<Session>,
         query: u64,
         matched: u64,
         accepted: bool,
         relative_pose: Option<Transform>,
         covariance: Option<Vec<f64>>,
     ) -> Result<LoopRecord, ApiError> {
-        let s = self.store.session(session)?;
         if let Some(p) = &relative_pose {
             let values = [p.qx, p.qy, p.qz, p.qw, p.tx, p.ty, p.tz];
             let norm = (p.qx * p.qx + p.qy * p.qy + p.qz * p.qz + p.qw * p.qw).sqrt();
@@ -49,6 +47,6 @@ impl LoopService {
             }
         }
         let verdict = Verdict { accepted, relative_pose, covariance, at: now() };
-        Ok(self.store.set_verdict(&s, query, matched, verdict).await?)
+        Ok(self.store.set_verdict(s, query, matched, verdict).await?)
     }
 }

@@ -11,7 +11,8 @@ use crate::auth::Caller;
 use crate::inspect::similarity::Similarity;
 use crate::store::loops::{LoopFilter, LoopRecord, Page, Transform};
 use crate::store::record::FrameHeader;
-use crate::store::SessionInfo;
+use crate::store::{Session, SessionInfo};
+use std::sync::Arc;
 
 pub struct Scoped<'a> {
     service: &'a LoopService,
@@ -33,12 +34,11 @@ impl Scoped<'_> {
         Ok(self.caller.store_id(id))
     }
 
-    /// As [`Scoped::sid`], the session brought up to date first (in a cluster: loaded from the
-    /// log, every frame acknowledged through any node applied, gone if deleted elsewhere).
-    async fn fresh(&self, id: &str) -> Result<String, ApiError> {
-        let sid = self.sid(id)?;
-        self.service.store.fresh(&sid).await?;
-        Ok(sid)
+    /// The caller's session `id`, brought up to date first (in a cluster: loaded from the log,
+    /// every frame acknowledged through any node applied, gone if deleted elsewhere): the one
+    /// lookup of a call, handed to the service.
+    async fn fresh(&self, id: &str) -> Result<Arc<Session>, ApiError> {
+        Ok(self.service.store.fresh(&self.sid(id)?).await?)
     }
 
     /// Limits checked before a write or query: the rate first, then stored frames (`adding`
@@ -101,7 +101,7 @@ impl Scoped<'_> {
     }
 
     pub async fn session(&self, id: &str) -> Result<SessionInfo, ApiError> {
-        Ok(self.caller.view(self.service.session(&self.fresh(id).await?)?))
+        Ok(self.caller.view(self.fresh(id).await?.info()))
     }
 
     pub async fn list_sessions(&self) -> Result<Vec<SessionInfo>, ApiError> {
@@ -118,34 +118,34 @@ impl Scoped<'_> {
     }
 
     pub async fn frame(&self, session: &str, frame_id: u64) -> Result<FrameHeader, ApiError> {
-        self.service.frame(&self.fresh(session).await?, frame_id)
+        self.service.frame(&*self.fresh(session).await?, frame_id)
     }
 
     pub async fn frames(&self, session: &str, after: Option<u64>, limit: usize) -> Result<FramePage, ApiError> {
-        self.service.frames(&self.fresh(session).await?, after, limit)
+        self.service.frames(&*self.fresh(session).await?, after, limit)
     }
 
     pub async fn thumbnail(&self, session: &str, frame_id: u64) -> Result<Vec<u8>, ApiError> {
-        self.service.thumbnail(&self.fresh(session).await?, frame_id)
+        self.service.thumbnail(&*self.fresh(session).await?, frame_id)
     }
 
     pub async fn similarity(&self, session: &str, size: usize) -> Result<Similarity, ApiError> {
-        let sid = self.fresh(session).await?;
+        let s = self.fresh(session).await?;
         // A matrix costs size² dot products: it counts against the tenant's rate like a query.
         let _slot = self.admit(0).await?;
-        self.service.similarity(&sid, size).await
+        self.service.similarity(s, size).await
     }
 
     pub async fn loops(&self, session: &str, filter: &LoopFilter) -> Result<Page, ApiError> {
-        let sid = self.fresh(session).await?;
-        self.service.store.fresh_loops(&sid).await?;
-        self.service.loops(&sid, filter)
+        let s = self.fresh(session).await?;
+        self.service.store.fresh_loops(&s.meta.id).await?;
+        self.service.loops(&s, filter)
     }
 
     pub async fn snapshot(&self, session: &str) -> Result<crate::export::Snapshot, ApiError> {
-        let sid = self.fresh(session).await?;
-        self.service.store.fresh_loops(&sid).await?;
-        self.service.snapshot(&sid)
+        let s = self.fresh(session).await?;
+        self.service.store.fresh_loops(&s.meta.id).await?;
+        self.service.snapshot(&s)
     }
 
     pub async fn set_verdict(
@@ -156,14 +156,14 @@ impl Scoped<'_> {
         relative_pose: Option<Transform>,
         covariance: Option<Vec<f64>>,
     ) -> Result<LoopRecord, ApiError> {
-        let sid = self.fresh(session).await?;
-        self.service.set_verdict(&sid, query, matched, accepted, relative_pose, covariance).await
+        let s = self.fresh(session).await?;
+        self.service.set_verdict(&s, query, matched, accepted, relative_pose, covariance).await
     }
 
     pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {
-        let sid = self.fresh(session).await?;
+        let s = self.fresh(session).await?;
         let _slot = self.admit(1).await?;
-        let id = self.service.add_frame(&sid, f).await?;
+        let id = self.service.add_frame(&s, f).await?;
         self.added(1);
         Ok(id)
     }
@@ -176,9 +176,9 @@ impl Scoped<'_> {
         target: QueryTarget,
         options: &QueryOverrides,
     ) -> Result<Vec<LoopMatch>, ApiError> {
-        let sid = self.fresh(session).await?;
+        let s = self.fresh(session).await?;
         let _slot = self.admit(0).await?;
-        self.service.query(&sid, robot_id, at_time, target, options).await
+        self.service.query(&s, robot_id, at_time, target, options).await
     }
 
     pub async fn add_and_query(
@@ -187,18 +187,18 @@ impl Scoped<'_> {
         f: FrameInput,
         options: &QueryOverrides,
     ) -> Result<(u64, Vec<LoopMatch>), ApiError> {
-        let sid = self.fresh(session).await?;
+        let s = self.fresh(session).await?;
         let _slot = self.admit(1).await?;
-        let answer = self.service.add_and_query(&sid, f, options).await?;
+        let answer = self.service.add_and_query(&s, f, options).await?;
         self.added(1);
         Ok(answer)
     }
 
     pub async fn start_sequence(&self, jobs: &Jobs, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
-        let sid = self.fresh(session).await?;
+        let s = self.fresh(session).await?;
         // A job runs after this returns: the slot checks the share at submission only.
         drop(self.admit(seq.frames.len()).await?);
-        jobs.start_sequence(self.service, &sid, seq).await
+        jobs.start_sequence(self.service, &s, seq).await
     }
 
     /// A job of one of this tenant's sessions.

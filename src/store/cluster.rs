@@ -95,12 +95,14 @@ impl Operations for Cluster {
     }
 
     async fn create_session(&self, store: &Store, meta: SessionMeta) -> Result<SessionMeta, StoreError> {
+        self.writable()?;
         let tbl = self.log.create_session(&meta).await?;
         self.cached(store, Head { meta: meta.clone(), tbl, version: 0 })?;
         Ok(meta)
     }
 
     async fn delete_session(&self, store: &Store, id: &str) -> Result<(), StoreError> {
+        self.writable()?;
         let deleted = self.log.delete_session(id).await;
         if matches!(deleted, Ok(()) | Err(StoreError::SessionNotFound(_))) {
             store.remove_local(id)?;
@@ -206,6 +208,7 @@ impl Operations for Cluster {
     }
 
     async fn put_tenant(&self, name: &str, record: &[u8]) -> Result<(), StoreError> {
+        self.writable()?;
         self.log.put_tenant(name, record).await
     }
 

@@ -141,9 +141,9 @@ impl PgLog {
         self.db.client().await
     }
 
-    /// Unavailable while the primary does not wait for a synchronous standby (checked before a write).
-    pub(super) fn writable(&self) -> Result<(), StoreError> {
-        self.db.writable()
+    /// The connections (the members' and jobs' tables write through them too).
+    pub(super) fn db(&self) -> &Db {
+        &self.db
     }
 
     /// Whether the log takes writes now: a connection to a writable primary whose commits wait
@@ -162,26 +162,31 @@ impl PgLog {
     /// Creates a session and its frames table, in one transaction; returns its table's number.
     pub async fn create_session(&self, meta: &SessionMeta) -> Result<i64, StoreError> {
         let json = serde_json::to_value(meta).map_err(|e| StoreError::Storage(e.to_string()))?;
-        let mut client = self.client().await?;
-        let tx = client.transaction().await.map_err(pg_error)?;
-        let sql = "INSERT INTO loopd_sessions (id, meta) VALUES ($1, $2) ON CONFLICT DO NOTHING RETURNING tbl";
-        let Some(row) = tx.query_opt(sql, &[&meta.id, &json]).await.map_err(pg_error)? else {
-            return Err(StoreError::SessionExists(meta.id.clone()));
-        };
-        let tbl: i64 = row.get(0);
-        let table = frames_table(tbl);
-        // Descriptors are incompressible: EXTERNAL keeps them out of line without trying.
-        let ddl = format!(
-            "CREATE TABLE {table} (frame_id bigint PRIMARY KEY, seq bigint NOT NULL UNIQUE, \
-             write_id bigint NOT NULL, record bytea NOT NULL, features bytea, thumb bytea); \
-             ALTER TABLE {table} ALTER COLUMN record SET STORAGE EXTERNAL; \
-             CREATE TABLE {} (query_frame bigint, match_frame bigint, record jsonb NOT NULL, \
-             PRIMARY KEY (query_frame, match_frame))",
-            loops_table(tbl)
-        );
-        tx.batch_execute(&ddl).await.map_err(pg_error)?;
-        tx.commit().await.map_err(pg_error)?;
-        Ok(tbl)
+        self.db
+            .within("creating a session", async {
+                let mut held = self.db.for_write().await?;
+                let tx = held.conn().transaction().await.map_err(pg_error)?;
+                let sql = "INSERT INTO loopd_sessions (id, meta) VALUES ($1, $2) ON CONFLICT DO NOTHING RETURNING tbl";
+                let Some(row) = tx.query_opt(sql, &[&meta.id, &json]).await.map_err(pg_error)? else {
+                    return Err(StoreError::SessionExists(meta.id.clone()));
+                };
+                let tbl: i64 = row.get(0);
+                let table = frames_table(tbl);
+                // Descriptors are incompressible: EXTERNAL keeps them out of line without trying.
+                let ddl = format!(
+                    "CREATE TABLE {table} (frame_id bigint PRIMARY KEY, seq bigint NOT NULL UNIQUE, \
+                     write_id bigint NOT NULL, record bytea NOT NULL, features bytea, thumb bytea); \
+                     ALTER TABLE {table} ALTER COLUMN record SET STORAGE EXTERNAL; \
+                     CREATE TABLE {} (query_frame bigint, match_frame bigint, record jsonb NOT NULL, \
+                     PRIMARY KEY (query_frame, match_frame))",
+                    loops_table(tbl)
+                );
+                tx.batch_execute(&ddl).await.map_err(pg_error)?;
+                tx.commit().await.map_err(pg_error)?;
+                held.release();
+                Ok(tbl)
+            })
+            .await
     }
 
     /// Every session's metadata and version.
@@ -211,12 +216,20 @@ impl PgLog {
 
     /// Drops a session and its frames, in one transaction.
     pub async fn delete_session(&self, session: &str) -> Result<(), StoreError> {
-        let mut client = self.client().await?;
-        let tx = client.transaction().await.map_err(pg_error)?;
-        let row = tx.query_opt("DELETE FROM loopd_sessions WHERE id = $1 RETURNING tbl", &[&session]).await;
-        let tbl: i64 = row.map_err(pg_error)?.ok_or_else(|| StoreError::SessionNotFound(session.into()))?.get(0);
-        tx.batch_execute(&format!("DROP TABLE {}, {}", frames_table(tbl), loops_table(tbl))).await.map_err(pg_error)?;
-        tx.commit().await.map_err(pg_error)?;
+        self.db
+            .within("deleting a session", async {
+                let mut held = self.db.for_write().await?;
+                let tx = held.conn().transaction().await.map_err(pg_error)?;
+                let row = tx.query_opt("DELETE FROM loopd_sessions WHERE id = $1 RETURNING tbl", &[&session]).await;
+                let tbl: i64 =
+                    row.map_err(pg_error)?.ok_or_else(|| StoreError::SessionNotFound(session.into()))?.get(0);
+                let drop = format!("DROP TABLE {}, {}", frames_table(tbl), loops_table(tbl));
+                tx.batch_execute(&drop).await.map_err(pg_error)?;
+                tx.commit().await.map_err(pg_error)?;
+                held.release();
+                Ok(())
+            })
+            .await?;
         // Its writer ends once the requests already queued are answered (SessionNotFound).
         self.writers.lock().remove(session);
         Ok(())
@@ -227,12 +240,16 @@ impl PgLog {
     pub async fn put_tenant(&self, name: &str, record: &[u8]) -> Result<(), StoreError> {
         let record: serde_json::Value =
             serde_json::from_slice(record).map_err(|e| StoreError::InvalidArgument(format!("tenant record: {e}")))?;
-        let client = self.client().await?;
-        self.db.writable()?;
-        let sql = "INSERT INTO loopd_tenants (name, record) VALUES ($1, $2) \
-                   ON CONFLICT (name) DO UPDATE SET record = EXCLUDED.record";
-        client.execute(sql, &[&name, &record]).await.map_err(pg_error)?;
-        Ok(())
+        self.db
+            .within("storing a tenant", async {
+                let mut held = self.db.for_write().await?;
+                let sql = "INSERT INTO loopd_tenants (name, record) VALUES ($1, $2) \
+                           ON CONFLICT (name) DO UPDATE SET record = EXCLUDED.record";
+                held.conn().execute(sql, &[&name, &record]).await.map_err(pg_error)?;
+                held.release();
+                Ok(())
+            })
+            .await
     }
 
     /// Every session's id and frame count (its version: one `seq` per frame, and frames are only
@@ -296,23 +313,28 @@ impl PgLog {
 
     /// Keeps loops answered again for stored frames; a verdict already given stays.
     pub async fn keep_loops(&self, tbl: i64, loops: &[LoopRecord]) -> Result<(), StoreError> {
-        let client = self.client().await?;
-        self.db.writable()?;
         let sql = format!(
             "INSERT INTO {} AS t (query_frame, match_frame, record) VALUES ($1, $2, $3) \
              ON CONFLICT (query_frame, match_frame) DO UPDATE SET record = CASE WHEN t.record ? 'verdict' \
              THEN EXCLUDED.record || jsonb_build_object('verdict', t.record->'verdict') ELSE EXCLUDED.record END",
             loops_table(tbl)
         );
-        let statement = client.prepare(&sql).await.map_err(pg_error)?;
         let rows = loops.iter().map(|l| loop_row(l.query_frame, l)).collect::<Result<Vec<_>, _>>()?;
         let params: Vec<[&(dyn ToSql + Sync); 3]> =
             rows.iter().map(|(q, m, r)| [q as &(dyn ToSql + Sync), m, r]).collect();
-        let writes = params.iter().map(|p| client.execute(&statement, p));
-        for w in futures::future::join_all(writes).await {
-            w.map_err(pg_error)?;
-        }
-        Ok(())
+        self.db
+            .within("keeping loops", async {
+                let mut held = self.db.for_write().await?;
+                let client = held.conn();
+                let statement = client.prepare(&sql).await.map_err(pg_error)?;
+                let writes = params.iter().map(|p| client.execute(&statement, p));
+                for w in futures::future::join_all(writes).await {
+                    w.map_err(pg_error)?;
+                }
+                held.release();
+                Ok(())
+            })
+            .await
     }
 
     /// Records a verdict on a kept loop; the loop as it now is.
@@ -324,14 +346,21 @@ impl PgLog {
         verdict: &Verdict,
     ) -> Result<LoopRecord, StoreError> {
         let verdict = serde_json::to_value(verdict).map_err(|e| StoreError::Storage(e.to_string()))?;
-        let client = self.client().await?;
-        self.db.writable()?;
         let sql = format!(
             "UPDATE {} SET record = record || jsonb_build_object('verdict', $3::jsonb) \
              WHERE query_frame = $1 AND match_frame = $2 RETURNING record",
             loops_table(tbl)
         );
-        let row = client.query_opt(&sql, &[&(query as i64), &(matched as i64), &verdict]).await.map_err(pg_error)?;
+        let row = self
+            .db
+            .within("recording a verdict", async {
+                let mut held = self.db.for_write().await?;
+                let params: [&(dyn ToSql + Sync); 3] = [&(query as i64), &(matched as i64), &verdict];
+                let row = held.conn().query_opt(&sql, &params).await.map_err(pg_error)?;
+                held.release();
+                Ok(row)
+            })
+            .await?;
         let row = row
             .ok_or_else(|| StoreError::LoopNotFound(format!("no loop {query} -> {matched} in session '{session}'")))?;
         loop_record(row.get(0))

@@ -176,11 +176,59 @@ impl Db {
         Ok(())
     }
 
+    /// A connection for a write, refused at once while the primary does not wait for a
+    /// synchronous standby (as the last check of a connection found it).
+    pub(super) async fn for_write(&self) -> Result<Held, StoreError> {
+        self.writable()?;
+        let client = self.client().await?;
+        // A new connection's check may just have found the standby gone.
+        self.writable()?;
+        Ok(Held(Some(client)))
+    }
+
+    /// A write, its connection included ([`Db::for_write`] inside it), under the log's deadline:
+    /// past it the write answers Unavailable and its connection is closed (dropped with the
+    /// write), so a commit waiting for a standby that does not answer, or a primary cut off,
+    /// holds no caller longer than the deadline.
+    pub(super) async fn within<T>(
+        &self,
+        what: &str,
+        write: impl std::future::Future<Output = Result<T, StoreError>>,
+    ) -> Result<T, StoreError> {
+        tokio::time::timeout(self.deadline, write)
+            .await
+            .unwrap_or_else(|_| Err(late(self.deadline, &format!("{what}, which may or may not have been committed"))))
+    }
+
     /// Unavailable while the primary does not wait for a synchronous standby.
     pub(super) fn writable(&self) -> Result<(), StoreError> {
         match self.unreplicated.lock().clone() {
             Some(u) => Err(StoreError::Unavailable(format!("writes refused: {}", u.why))),
             None => Ok(()),
+        }
+    }
+}
+
+/// A connection taken for a write: closed, not put back into the pool, unless released once the
+/// write is answered, so that a write abandoned at its deadline (perhaps mid-transaction) never
+/// hands its connection to the next caller.
+pub(super) struct Held(Option<Object>);
+
+impl Held {
+    pub(super) fn conn(&mut self) -> &mut Object {
+        self.0.as_mut().expect("a held connection is there until released")
+    }
+
+    /// Back into the pool: the write was answered.
+    pub(super) fn release(mut self) {
+        drop(self.0.take());
+    }
+}
+
+impl Drop for Held {
+    fn drop(&mut self) {
+        if let Some(client) = self.0.take() {
+            let _ = Object::take(client);
         }
     }
 }

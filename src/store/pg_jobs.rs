@@ -25,18 +25,24 @@ impl PgLog {
     pub async fn put_job(&self, id: &str, n: u64, node: &str, record: &[u8], kept: usize) -> Result<(), StoreError> {
         let record: serde_json::Value =
             serde_json::from_slice(record).map_err(|e| StoreError::InvalidArgument(format!("job record: {e}")))?;
-        let client = self.client().await?;
-        self.writable()?;
         let n = i64::try_from(n).map_err(|_| StoreError::InvalidArgument("job number above 2^63 - 1".into()))?;
-        let sql = "INSERT INTO loopd_jobs (id, n, node, record) VALUES ($1, $2, $3, $4) ON CONFLICT (id) \
-                   DO UPDATE SET node = EXCLUDED.node, record = EXCLUDED.record, updated = now() RETURNING xmax = 0";
-        let inserted: bool = client.query_one(sql, &[&id, &n, &node, &record]).await.map_err(pg_error)?.get(0);
-        if inserted {
-            let sql = "DELETE FROM loopd_jobs WHERE id IN (SELECT id FROM loopd_jobs \
-                       WHERE record->>'state' <> 'running' ORDER BY n DESC OFFSET $1)";
-            client.execute(sql, &[&(kept as i64)]).await.map_err(pg_error)?;
-        }
-        Ok(())
+        self.db()
+            .within("keeping a job", async {
+                let mut held = self.db().for_write().await?;
+                let client = held.conn();
+                let sql = "INSERT INTO loopd_jobs (id, n, node, record) VALUES ($1, $2, $3, $4) ON CONFLICT (id) \
+                           DO UPDATE SET node = EXCLUDED.node, record = EXCLUDED.record, updated = now() \
+                           RETURNING xmax = 0";
+                let inserted: bool = client.query_one(sql, &[&id, &n, &node, &record]).await.map_err(pg_error)?.get(0);
+                if inserted {
+                    let sql = "DELETE FROM loopd_jobs WHERE id IN (SELECT id FROM loopd_jobs \
+                               WHERE record->>'state' <> 'running' ORDER BY n DESC OFFSET $1)";
+                    client.execute(sql, &[&(kept as i64)]).await.map_err(pg_error)?;
+                }
+                held.release();
+                Ok(())
+            })
+            .await
     }
 
     /// Job `id`'s record, if the log holds it, and whether it was written within `recent`.
@@ -52,10 +58,15 @@ impl PgLog {
     /// Marks the jobs `node` was running as interrupted (it starts again: they ran in its earlier
     /// life). The number of jobs marked.
     pub async fn interrupt_jobs(&self, node: &str) -> Result<u64, StoreError> {
-        let client = self.client().await?;
-        self.writable()?;
         let sql = "UPDATE loopd_jobs SET record = jsonb_set(record, '{state}', '\"interrupted\"') \
                    WHERE node = $1 AND record->>'state' = 'running'";
-        client.execute(sql, &[&node]).await.map_err(pg_error)
+        self.db()
+            .within("marking jobs interrupted", async {
+                let mut held = self.db().for_write().await?;
+                let marked = held.conn().execute(sql, &[&node]).await.map_err(pg_error)?;
+                held.release();
+                Ok(marked)
+            })
+            .await
     }
 }

@@ -2,7 +2,7 @@
 //! them as one transaction under the session row's lock, each request all or none under its own
 //! savepoint, within the log's deadline (`LogConfig::deadline`).
 use super::loops::LoopRecord;
-use super::pg_db::{frames_table, late, loop_row, loops_table, pg_error, Appended, Db};
+use super::pg_db::{frames_table, loop_row, loops_table, pg_error, Appended, Db};
 use super::record::{encode_frame, FrameHeader};
 use super::{NewFrame, StoreError};
 use crate::index::Storage;
@@ -69,20 +69,13 @@ async fn commit_group(
     session: &str,
     group: &[Request],
 ) -> Result<Vec<Result<Appended, StoreError>>, StoreError> {
-    let started = tokio::time::Instant::now();
-    let mut client = tokio::time::timeout(db.deadline, db.client())
-        .await
-        .map_err(|_| late(db.deadline, "a connection for a write"))??;
-    db.writable()?;
-    let left = db.deadline.saturating_sub(started.elapsed());
-    match tokio::time::timeout(left, commit_on(&mut client, session, group)).await {
-        Ok(answers) => answers,
-        Err(_) => {
-            // Mid-transaction: never back into the pool.
-            let _ = Object::take(client);
-            Err(late(db.deadline, "a write, which may or may not have been committed"))
-        }
-    }
+    db.within("a write", async {
+        let mut held = db.for_write().await?;
+        let answers = commit_on(held.conn(), session, group).await;
+        held.release();
+        answers
+    })
+    .await
 }
 
 async fn commit_on(

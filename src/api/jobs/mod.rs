@@ -7,7 +7,7 @@ pub use request::{job_defaults, SeqFrame, SequenceRequest};
 use super::error::ApiError;
 use super::service::{check_robot_id, make_thumbnail, Content, FrameInput, LoopService, QueryOverrides};
 use super::wire::{JobState, JobStatus, LoopClosure};
-use crate::store::Store;
+use crate::store::{Session, Store};
 use futures::StreamExt;
 use parking_lot::Mutex;
 use std::collections::HashMap;
@@ -67,14 +67,13 @@ impl Jobs {
     pub async fn start_sequence(
         &self,
         service: &LoopService,
-        session: &str,
+        s: &Session,
         seq: SequenceRequest,
     ) -> Result<String, ApiError> {
-        let s = service.store.session(session)?;
-        service.check_space(&s)?;
+        service.check_space(s)?;
         check_robot_id(&seq.robot_id)?;
         let asked = seq.options.over(&job_defaults()).apply(&s.meta.default_query);
-        service.check_confidence(&s, &asked)?;
+        service.check_confidence(s, &asked)?;
         let id = self.launch(service.clone(), s.meta.id.clone(), seq).await?;
         service.store.durable_records().await?;
         Ok(id)
@@ -249,7 +248,12 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
             content: Content::Embedded { descriptor, features },
             thumbnail,
         };
-        match service.add_and_query(&session, frame, &opts).await {
+        // Looked up for each frame: a session deleted while its job runs ends the job.
+        let answer = match service.store.session(&session) {
+            Ok(s) => service.add_and_query(&s, frame, &opts).await,
+            Err(e) => Err(e.into()),
+        };
+        match answer {
             Ok((frame_id, matches)) => {
                 let mut s = status.lock();
                 let first = matches.first().filter(|c| c.confidence.unwrap_or(1.0) >= min_confidence);

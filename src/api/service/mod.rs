@@ -337,10 +337,6 @@ impl LoopService {
         Ok(self.store.session(&meta.id)?.info())
     }
 
-    pub fn session(&self, id: &str) -> Result<SessionInfo, ApiError> {
-        Ok(self.store.session(id)?.info())
-    }
-
     pub fn list_sessions(&self) -> Vec<SessionInfo> {
         self.store.list()
     }
@@ -356,8 +352,8 @@ impl LoopService {
     }
 
     /// A stored frame's header (searchable frames only).
-    pub fn frame(&self, session: &str, frame_id: u64) -> Result<FrameHeader, ApiError> {
-        Ok(self.store.session(session)?.frame(frame_id)?.0)
+    pub fn frame(&self, s: &Session, frame_id: u64) -> Result<FrameHeader, ApiError> {
+        Ok(s.frame(frame_id)?.0)
     }
 
     /// Images embedded here may only go to sessions of this server's descriptor space.
@@ -421,17 +417,14 @@ impl LoopService {
         self.verifier.config().max_feature_bytes > 0
     }
 
-    /// The session and the frame's timestamp, after every check that needs no forward pass.
-    fn check_frame(&self, session: &str, f: &FrameInput) -> Result<(Arc<Session>, f64), ApiError> {
-        // The descriptor space is checked in `prepare`, before the image is embedded.
-        Ok((self.store.session(session)?, f.check()?))
-    }
-
-    pub async fn add_frame(&self, session: &str, mut f: FrameInput) -> Result<u64, ApiError> {
-        let (s, t) = self.check_frame(session, &f)?;
+    /// Adds a frame to the session the caller's scope looked up (`tenancy.rs`).
+    pub async fn add_frame(&self, s: &Arc<Session>, mut f: FrameInput) -> Result<u64, ApiError> {
+        // Every check that needs no forward pass; the descriptor space is checked in `prepare`,
+        // before the image is embedded.
+        let t = f.check()?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
-        let prepared = self.prepare(&s, content, self.keeps_features(), s.meta.thumbnails).await?;
-        self.store_frame(&s, f.into_new_frame(t, prepared)).await
+        let prepared = self.prepare(s, content, self.keeps_features(), s.meta.thumbnails).await?;
+        self.store_frame(s, f.into_new_frame(t, prepared)).await
     }
 
     async fn store_frame(&self, s: &Arc<Session>, frame: NewFrame) -> Result<u64, ApiError> {

@@ -118,13 +118,12 @@ impl LoopService {
 
     pub async fn query(
         &self,
-        session: &str,
+        s: &Arc<Session>,
         robot_id: Option<String>,
         at_time: Option<f64>,
         target: QueryTarget,
         options: &QueryOverrides,
     ) -> Result<Vec<LoopMatch>, ApiError> {
-        let s = self.store.session(session)?;
         let mut q = options.apply(&s.meta.default_query);
         q.robot_id = robot_id.filter(|r| !r.is_empty());
         if let Some(r) = &q.robot_id {
@@ -132,7 +131,7 @@ impl LoopService {
         }
         q.at_time = at_time;
         q.validate().map_err(ApiError::from)?;
-        self.check_confidence(&s, &q)?;
+        self.check_confidence(s, &q)?;
         match target {
             QueryTarget::Frame(id) => {
                 let stored = s.features(id)?.and_then(|b| stored_features(&s.meta.id, id, &b));
@@ -142,16 +141,16 @@ impl LoopService {
                 };
                 let d = s.descriptor(id)?;
                 let q = LoopQuery { exclude_frame: Some(id), ..q };
-                let matches = self.search(&s, d, &features, History::Stored(id), &q).await?.0;
+                let matches = self.search(s, d, &features, History::Stored(id), &q).await?.0;
                 let (header, _) = s.frame(id)?;
                 let asked = QueryFrame { id, robot: &header.robot_id, time: header.timestamp };
-                self.keep_loops(&s, asked, &matches).await;
+                self.keep_loops(s, asked, &matches).await;
                 Ok(matches)
             }
             QueryTarget::Content(c) => {
-                let p = self.prepare(&s, c, q.verify.geometric, false).await?;
+                let p = self.prepare(s, c, q.verify.geometric, false).await?;
                 let history = History::Live(q.robot_id.clone());
-                Ok(self.search(&s, p.descriptor, &p.features, history, &q).await?.0)
+                Ok(self.search(s, p.descriptor, &p.features, history, &q).await?.0)
             }
         }
     }
@@ -159,21 +158,21 @@ impl LoopService {
     /// Queries with the new frame first (so it cannot match itself), then stores it.
     pub async fn add_and_query(
         &self,
-        session: &str,
+        s: &Arc<Session>,
         mut f: FrameInput,
         options: &QueryOverrides,
     ) -> Result<(u64, Vec<LoopMatch>), ApiError> {
-        let (s, t) = self.check_frame(session, &f)?;
+        let t = f.check()?;
         let mut q = options.apply(&s.meta.default_query);
         q.robot_id = Some(f.robot_id.clone());
         q.at_time = Some(t);
         q.validate().map_err(ApiError::from)?;
-        self.check_confidence(&s, &q)?;
+        self.check_confidence(s, &q)?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
         let features = q.verify.geometric || self.keeps_features();
-        let prepared = self.prepare(&s, content, features, s.meta.thumbnails).await?;
+        let prepared = self.prepare(s, content, features, s.meta.thumbnails).await?;
         let history = History::Live(Some(f.robot_id.clone()));
-        let (matches, votes) = self.search(&s, prepared.descriptor.clone(), &prepared.features, history, &q).await?;
+        let (matches, votes) = self.search(s, prepared.descriptor.clone(), &prepared.features, history, &q).await?;
         let prepared = if self.keeps_features() {
             prepared
         } else {
@@ -184,7 +183,7 @@ impl LoopService {
         // Made for the batch's first frame: the store gives each its frame id.
         let keep =
             loop_records(QueryFrame { id: 0, robot: &robot, time: t }, &matches).into_iter().map(|l| (0, l)).collect();
-        let ids = self.store.add_frames_keeping(&s, vec![f.into_new_frame(t, prepared)], keep).await?;
+        let ids = self.store.add_frames_keeping(s, vec![f.into_new_frame(t, prepared)], keep).await?;
         let id = ids.first().copied().ok_or_else(|| ApiError::Internal("no frame id returned".into()))?;
         // Its best matches by descriptor: the candidates it votes for in later sequence checks.
         s.set_votes(id, votes);

@@ -217,15 +217,30 @@ async fn a_write_past_the_deadline_is_unavailable_and_a_gone_standby_refuses_wri
     log.create_session(&m).await.unwrap();
     log.append(&m, &[frame(0, Some(1))]).await.unwrap();
     log.probe().await.expect("a standby streams");
+    // Two checked connections in the pool: each write below takes one already checked.
+    let (a, b) = tokio::join!(log.heads(), log.heads());
+    a.and(b).expect("two connections");
 
     server("LOOPD_PG_STANDBY", "stop");
     let started = std::time::Instant::now();
     let late = log.append(&m, &[frame(1, Some(2))]).await;
     let took = started.elapsed();
+    // A session created, and not answered, while no standby confirms: within the deadline too.
+    let started = std::time::Instant::now();
+    let late_create = log.create_session(&meta("gate-late")).await;
+    let create_took = started.elapsed();
     let stopped = log.probe().await;
     let started = std::time::Instant::now();
     let refused = log.append(&m, &[frame(2, Some(3))]).await;
     let refused_in = started.elapsed();
+    // Every other write is refused at once too.
+    let started = std::time::Instant::now();
+    let others = [
+        log.create_session(&meta("gate2")).await.map(|_| ()),
+        log.put_tenant("gate", br#"{"name": "gate"}"#).await,
+        log.delete_session("gate").await,
+    ];
+    let others_in = started.elapsed();
     server("LOOPD_PG_STANDBY", "start");
 
     match &late {
@@ -233,12 +248,21 @@ async fn a_write_past_the_deadline_is_unavailable_and_a_gone_standby_refuses_wri
         other => panic!("a commit with no standby answered {other:?}"),
     }
     assert!(took >= deadline && took < deadline * 3, "answered after {took:?}, deadline {deadline:?}");
+    match &late_create {
+        Err(StoreError::Unavailable(why)) => assert!(why.contains("creating a session"), "{why}"),
+        other => panic!("creating a session with no standby answered {other:?}"),
+    }
+    assert!(create_took < deadline * 3, "a session's creation answered after {create_took:?}");
     match &stopped {
         Err(StoreError::Unavailable(why)) => assert!(why.contains("no synchronous standby is streaming"), "{why}"),
         other => panic!("the probe with the standby stopped answered {other:?}"),
     }
     assert!(matches!(refused, Err(StoreError::Unavailable(_))), "{refused:?}");
     assert!(refused_in < Duration::from_millis(500), "refused after {refused_in:?}: it waited on the database");
+    for other in &others {
+        assert!(matches!(other, Err(StoreError::Unavailable(_))), "{other:?}");
+    }
+    assert!(others_in < Duration::from_millis(1500), "refused after {others_in:?}: they waited on the database");
 
     let back = std::time::Instant::now();
     while log.probe().await.is_err() {
@@ -255,4 +279,9 @@ async fn a_write_past_the_deadline_is_unavailable_and_a_gone_standby_refuses_wri
     let ids: Vec<u64> = log.frames("gate", 0).await.unwrap().iter().map(|f| f.frame_id).collect();
     assert_eq!(ids, [1, 2, 3], "each frame once");
     log.delete_session("gate").await.unwrap();
+    // Created or not, the session of the abandoned creation is whole or absent.
+    match log.delete_session("gate-late").await {
+        Ok(()) | Err(StoreError::SessionNotFound(_)) => {}
+        other => panic!("the abandoned creation left {other:?}"),
+    }
 }

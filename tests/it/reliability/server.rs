@@ -72,7 +72,7 @@ async fn shutdown_ends_open_streams_and_keeps_every_acknowledged_frame() {
     feeder.abort();
     drop(idle_tx);
     let server = start(dir.path(), Duration::from_secs(5)).await;
-    let info = server.service.session("s").unwrap();
+    let info = server.service.store.session("s").unwrap().info();
     assert_eq!(info.frames, acknowledged, "every acknowledged frame, nothing else");
     server.shutdown().await.unwrap();
 }
