@@ -95,12 +95,12 @@ pub(super) fn late(deadline: std::time::Duration, what: &str) -> StoreError {
     StoreError::Unavailable(format!("the cluster database did not answer within {deadline:?} ({what}); retry later"))
 }
 
-pub(super) fn pool_error(e: deadpool_postgres::PoolError) -> StoreError {
+/// A pool error as a store error; a timeout (waiting for, creating or recycling a connection)
+/// reads as every other call past the deadline.
+fn pool_error(e: deadpool_postgres::PoolError, deadline: std::time::Duration) -> StoreError {
     match e {
         deadpool_postgres::PoolError::Backend(e) => pg_error(e),
-        deadpool_postgres::PoolError::Timeout(_) => {
-            StoreError::Unavailable("the cluster database did not answer in time (a connection); retry later".into())
-        }
+        deadpool_postgres::PoolError::Timeout(_) => late(deadline, "a connection"),
         other => StoreError::Unavailable(format!("the cluster database is unavailable ({other}); retry later")),
     }
 }
@@ -109,7 +109,7 @@ impl Db {
     /// A pooled connection; a new one first says which primary it reached (a change bumps the
     /// epoch) and whether its commits wait for a synchronous standby.
     pub(super) async fn client(&self) -> Result<Object, StoreError> {
-        let client = self.pool.get().await.map_err(pool_error)?;
+        let client = self.pool.get().await.map_err(|e| pool_error(e, self.deadline))?;
         if Object::metrics(&client).recycle_count > 0 {
             return Ok(client);
         }
