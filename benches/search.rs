@@ -204,6 +204,7 @@ fn store_bench() -> anyhow::Result<()> {
                     default_query: LoopQuery::default(),
                     camera: None,
                     thumbnails: false,
+                    index: loopd::index::graph::IndexKind::Exact,
                 },
             )
             .await?;

@@ -29,10 +29,10 @@
 //! - `inspect/`: thumbnails, the similarity matrix and the loop inspector page.
 //! - `store/`: persistence: sessions on sled (or the PostgreSQL cluster's log, sled its cache),
 //!   their frames, features, thumbnails and kept loops; fills each session's index from its
-//!   records.
+//!   records, and its approximate index in the background (`indexer.rs`, which also saves it).
 //! - `index/`: search: a session's rows in memory, exact scores (host SIMD kernels or a libtorch
-//!   device), the query options and matches, the sequence trails and votes; imports no other
-//!   layer.
+//!   device) or the approximate index's candidates re-scored exactly (`graph.rs`, `approx.rs`),
+//!   the query options and matches, the sequence trails and votes; imports no other layer.
 //! - `model/`: the descriptor network, weights, preprocessing.
 //! - `bags/`: ROS 1 and rosbag2 bags to frames.
 //! - `files.rs`, `pb.rs`: image file listings; the generated gRPC types.

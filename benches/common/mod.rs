@@ -39,6 +39,7 @@ pub fn meta(id: &str) -> SessionMeta {
         default_query: LoopQuery::default(),
         camera: None,
         thumbnails: false,
+        index: Default::default(),
     }
 }
 
@@ -53,5 +54,6 @@ pub fn new_session(id: &str) -> NewSession {
         default_query: m.default_query,
         camera: m.camera,
         thumbnails: m.thumbnails,
+        index: m.index,
     }
 }

@@ -1,5 +1,6 @@
 use super::{ModelArgs, VariantArgs};
 use crate::eval::run::{run as run_eval, EvalSpec};
+use crate::index::graph::IndexKind;
 use crate::index::query::VerifyOptions;
 use crate::verify::geometric::Intrinsics;
 use anyhow::Result;
@@ -44,6 +45,10 @@ pub struct EvalArgs {
     /// One sequence: frames this close to the query are never candidates.
     #[arg(long, default_value_t = 0)]
     pub exclude: usize,
+    /// How reference frames are searched: exact, or approximate (the server's approximate index,
+    /// every query through its graph).
+    #[arg(long, default_value = "exact", value_parser = ["exact", "approximate"])]
+    pub index: String,
     #[command(flatten)]
     pub variant: VariantArgs,
     /// Print the report as JSON on stdout.
@@ -156,6 +161,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         range: a.range.clone(),
         calibrator: None,
         samples_out: a.samples_out.as_deref(),
+        index: IndexKind::parse(&a.index).map_err(anyhow::Error::msg)?,
     };
     let variant = a.variant.variant();
     let out = run_eval(model, &spec, &a.model.weights, variant, Some(&a.cache_dir), &a.model.calibration())?;

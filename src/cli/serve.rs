@@ -3,6 +3,7 @@ use crate::api::server::{ClusterConfig, ConnectionConfig, RunningServer, ServerC
 use crate::api::tls::TlsFiles;
 use crate::auth::AuthConfig;
 use crate::engine::EngineConfig;
+use crate::index::graph::GraphParams;
 use crate::model::device::parse_device;
 use crate::model::preprocess::ImageLimits;
 use crate::store::SearchConfig;
@@ -56,6 +57,25 @@ pub struct ServeArgs {
     /// Sessions with fewer frames search on the host even when a device is set.
     #[arg(long, env = "LOOPD_SEARCH_DEVICE_MIN_FRAMES", default_value_t = 4096)]
     pub search_device_min_frames: usize,
+    /// Sessions created with `index: auto` (the default) switch to the approximate index
+    /// (docs/storage.md) once they hold this many frames.
+    #[arg(long, env = "LOOPD_APPROX_MIN_FRAMES", default_value_t = GraphParams::default().min_frames)]
+    pub approx_min_frames: usize,
+    /// Values of each descriptor the approximate index's graph holds (the first, PCA-ordered
+    /// ones of loopd's whitened descriptors; 0: all). Candidates are re-scored on the full rows.
+    #[arg(long, env = "LOOPD_APPROX_DIMS", default_value_t = GraphParams::default().dims)]
+    pub approx_dims: usize,
+    /// Candidates the approximate index keeps while searching (HNSW efSearch): recall against time.
+    #[arg(long, env = "LOOPD_APPROX_EXPANSION", default_value_t = GraphParams::default().expansion_search)]
+    pub approx_expansion: usize,
+    /// A query whose filters leave fewer frames than this is answered by scanning those frames
+    /// exactly instead (0: every query of an approximate session goes through the graph).
+    #[arg(long, env = "LOOPD_APPROX_EXACT_BELOW", default_value_t = GraphParams::default().exact_below)]
+    pub approx_exact_below: usize,
+    /// A session's approximate index is saved (`<data-dir>/graphs/`) each time it has grown by
+    /// this many frames, and at most a minute after it last grew, so a restart loads it.
+    #[arg(long, env = "LOOPD_APPROX_SAVE_FRAMES", default_value_t = GraphParams::default().save_rows)]
+    pub approx_save_frames: usize,
     /// Loop searches running at once, on blocking threads off the request executor (default:
     /// number of cores); more wait their turn.
     #[arg(long, env = "LOOPD_SEARCH_WORKERS")]
@@ -162,6 +182,14 @@ impl ServeArgs {
             device,
             device_min_rows: self.search_device_min_frames,
             max_concurrent: self.search_workers.unwrap_or(defaults.max_concurrent).max(1),
+            graph: GraphParams {
+                min_frames: self.approx_min_frames,
+                dims: self.approx_dims,
+                expansion_search: self.approx_expansion.max(1),
+                exact_below: self.approx_exact_below,
+                save_rows: self.approx_save_frames.max(1),
+                ..defaults.graph
+            },
         })
     }
 

@@ -4,6 +4,7 @@ use super::gt::GroundTruth;
 use super::metrics::{evaluate, evaluate_confidence, ConfidenceReport, QueryResult, Report};
 use super::plots;
 use crate::engine::{Engine, EngineConfig};
+use crate::index::graph::{GraphParams, IndexKind};
 use crate::index::query::{LoopQuery, VerifyOptions};
 use crate::index::SessionIndex;
 use crate::index::Storage;
@@ -175,6 +176,9 @@ pub struct EvalSpec<'a> {
     pub calibrator: Option<std::sync::Arc<Calibrator>>,
     /// Every answered candidate's evidence and ground truth, one JSON line each (`loopd calibrate`).
     pub samples_out: Option<&'a Path>,
+    /// Exact search, or the approximate index (the server's, built over every reference frame
+    /// before the first query); auto means exact here.
+    pub index: IndexKind,
 }
 
 #[derive(Serialize)]
@@ -189,6 +193,8 @@ pub struct EvalOutput {
     pub query_frames: usize,
     pub tolerance: usize,
     pub exclude: usize,
+    /// "exact" or "approximate".
+    pub index: &'static str,
     /// Frame range used, if not all.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub range: Option<String>,
@@ -229,6 +235,11 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
     let mut index = SessionIndex::new(dim, Storage::F32);
     for (i, d) in ref_desc.iter().enumerate() {
         index.push(i as u64, "ref", i as f64, None, d);
+    }
+    if spec.index == IndexKind::Approximate {
+        // Every query through the graph, however few frames its filter leaves.
+        index.set_index(IndexKind::Approximate, GraphParams { exact_below: 0, ..Default::default() });
+        index.index_all().map_err(anyhow::Error::msg)?;
     }
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     // Every query goes through `verify::check`, as the server's do: descriptor ranking alone is
@@ -364,6 +375,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         query_frames: nq,
         tolerance: spec.tolerance,
         exclude: spec.exclude,
+        index: spec.index.as_str(),
         range: spec.range.as_ref().map(|r| format!("{}..{}", r.start, r.end)),
         best,
         best_confidence,

@@ -17,6 +17,9 @@ impl SessionIndex {
         if queries.len() <= 1 || k == 0 || self.frames.is_empty() {
             return queries.iter().map(|q| self.search(q, opts, threads)).collect();
         }
+        if self.searches_graph() {
+            return self.graph_batch(queries, opts, threads);
+        }
         let filter = Filter::new(self, opts);
         let (b, n, dim) = (queries.len(), self.frames.len(), self.dim);
         let flat: Vec<f32> = queries.iter().flat_map(|q| q.iter().copied()).collect();

@@ -1,22 +1,28 @@
 //! Search, a layer of its own: one session's descriptors, contiguous in memory, searched exactly
 //! (cosine = dot of unit rows), with the sequence helpers (trails, votes) that read the same rows.
 //! `query` holds the query options and results, `kernels` the host SIMD dot products, `device`
-//! the rows mirrored on a libtorch device. It imports no other layer of loopd: persistence
+//! the rows mirrored on a libtorch device, `graph` the approximate index (an HNSW graph) that
+//! large sessions search instead of every row (`approx` the search over it). It imports no other layer of loopd: persistence
 //! (`store`) fills it from its records and asks it, verification reads its matches.
+mod approx;
+pub use approx::Pending;
 mod batch;
 pub mod device;
+pub mod graph;
 pub mod kernels;
 pub mod query;
 mod select;
 use select::{Filter, TopK};
 
 use device::{DeviceRows, HostRows};
+use graph::{Graph, GraphParams, IndexKind};
 use kernels::{dots_f16, dots_f32};
 use ordered_float::OrderedFloat;
 use query::{LoopQuery, Match, Pose, Scope};
 use serde::{Deserialize, Serialize};
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap};
+use std::sync::Arc;
 
 /// How a session keeps its descriptors (on disk and in memory).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
@@ -84,6 +90,11 @@ pub struct SessionIndex {
     by_robot: Vec<Vec<u64>>,
     /// Set when searches run on a libtorch device (the model's GPU); None: the host kernels.
     device: Option<DeviceSearch>,
+    /// Exact, approximate, or approximate from `graph_params.min_frames` on.
+    kind: IndexKind,
+    graph_params: GraphParams,
+    /// The approximate index once the session uses one (filled by the store's indexer).
+    graph: Option<Arc<Graph>>,
 }
 
 struct DeviceSearch {
@@ -134,6 +145,9 @@ impl SessionIndex {
             by_frame: HashMap::new(),
             by_robot: Vec::new(),
             device: None,
+            kind: IndexKind::Exact,
+            graph_params: GraphParams::default(),
+            graph: None,
         }
     }
 
@@ -170,6 +184,11 @@ impl SessionIndex {
         self.frames.len()
     }
 
+    /// Values per descriptor.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
     pub fn is_empty(&self) -> bool {
         self.frames.is_empty()
     }
@@ -198,7 +217,8 @@ impl SessionIndex {
             Rows::F16(v) => v.capacity() * 2,
             Rows::F32(v) => v.capacity() * 4,
         };
-        rows + self.frames.capacity() * std::mem::size_of::<FrameMeta>()
+        let graph = self.graph.as_ref().map_or(0, |g| g.memory_bytes());
+        rows + self.frames.capacity() * std::mem::size_of::<FrameMeta>() + graph
     }
 
     /// Appends one unit descriptor (the caller has checked dim and uniqueness).
@@ -229,6 +249,7 @@ impl SessionIndex {
             }
             _ => ids.push(frame_id),
         }
+        self.start_graph_when_due();
     }
 
     /// The frame's robot and its position in that robot's trajectory (frames in id order).
@@ -333,6 +354,9 @@ impl SessionIndex {
         let k = opts.k.min(query::MAX_K);
         if k == 0 || self.frames.is_empty() {
             return Vec::new();
+        }
+        if let Some(found) = self.graph_search(q, opts, k, &filter) {
+            return found.into_iter().map(|(score, row)| self.to_match(score, row)).collect();
         }
         if let Some(mut found) = self.device_top(q, opts, k, &filter) {
             let best = found.pop().unwrap_or_default();

@@ -7,6 +7,7 @@ pub mod disk;
 pub mod durability;
 mod embedded;
 pub mod health;
+mod indexer;
 pub mod loops;
 mod operations;
 mod owners;
@@ -76,6 +77,7 @@ pub struct NewSession {
     pub camera: Option<record::Camera>,
     /// Keep a thumbnail of each frame (for the loop inspector).
     pub thumbnails: bool,
+    pub index: crate::index::graph::IndexKind,
 }
 
 /// What a session holds, for listings.
@@ -87,6 +89,10 @@ pub struct SessionInfo {
     pub robots: Vec<String>,
     pub bytes_on_disk: u64,
     pub bytes_in_memory: usize,
+    /// Frames the approximate index covers (the newest others are searched exactly until the
+    /// indexer adds them); absent while the session searches exactly.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub approximate_frames: Option<usize>,
 }
 
 /// A session's trees in the open database; None while the store reopens it.
@@ -114,6 +120,8 @@ pub struct Session {
     /// In a cluster: when a request last used it (ms since the Unix epoch), so that a node evicts
     /// only sessions it neither owns nor serves (`owners.rs`).
     used: AtomicU64,
+    /// Where its approximate index is saved, and how much of it was last (`indexer.rs`).
+    graph_file: parking_lot::Mutex<indexer::GraphFile>,
 }
 
 pub struct Store {
@@ -121,7 +129,7 @@ pub struct Store {
     /// The open database; None while a reopen replaces it.
     disk: RwLock<Option<Disk>>,
     health: Arc<Health>,
-    sessions: RwLock<HashMap<String, Arc<Session>>>,
+    sessions: Arc<RwLock<HashMap<String, Arc<Session>>>>,
     /// Serialises session creation and deletion (not frame writes) and reopens.
     admin: Mutex<()>,
     search_threads: usize,
@@ -173,11 +181,13 @@ pub struct SearchConfig {
     pub device_min_rows: usize,
     /// Searches running at once (each on a blocking thread); more wait their turn.
     pub max_concurrent: usize,
+    /// The approximate index's shape, and when `auto` sessions switch to it.
+    pub graph: crate::index::graph::GraphParams,
 }
 
 impl Default for SearchConfig {
     fn default() -> Self {
-        Self { device: None, device_min_rows: 4096, max_concurrent: cores() }
+        Self { device: None, device_min_rows: 4096, max_concurrent: cores(), graph: Default::default() }
     }
 }
 
@@ -201,6 +211,8 @@ impl Store {
     /// dropped (the log is the authority) and loaded again from it on first use.
     fn open_dir(dir: &Path, search: SearchConfig, backend: backend::Backend) -> Result<Self, StoreError> {
         std::fs::create_dir_all(dir).map_err(|e| StoreError::Storage(format!("{}: {e}", dir.display())))?;
+        let graphs = dir.join(indexer::GRAPH_DIR);
+        std::fs::create_dir_all(&graphs).map_err(|e| StoreError::Storage(format!("{}: {e}", graphs.display())))?;
         let health = Arc::new(Health::default());
         let disk = Disk::open(dir, health.clone())?;
         let t = Instant::now();
@@ -222,7 +234,7 @@ impl Store {
         for entry in disk.sessions.iter() {
             let (_, v) = entry?;
             let meta: SessionMeta = serde_json::from_slice(&v).map_err(|e| StoreError::Storage(e.to_string()))?;
-            let session = Session::load(&disk.db, meta, search)?;
+            let session = Session::load(&disk.db, meta, search, &graphs)?;
             let index = session.index.read();
             index.upload();
             frames += index.len();
@@ -236,11 +248,13 @@ impl Store {
             search_device = search.device.map_or_else(|| "host".to_string(), |d| format!("{d:?}")),
             "indexes rebuilt from sled"
         );
+        let sessions = Arc::new(RwLock::new(sessions));
+        indexer::spawn(Arc::downgrade(&sessions));
         Ok(Self {
             dir: dir.to_path_buf(),
             disk: RwLock::new(Some(disk)),
             health,
-            sessions: RwLock::new(sessions),
+            sessions,
             admin: Mutex::new(()),
             search_threads: cores(),
             search_slots: Arc::new(Semaphore::new(search.max_concurrent.max(1))),
@@ -286,6 +300,7 @@ impl Store {
         let removed = self.sessions.write().remove(id);
         let Some(removed) = removed else { return Ok(false) };
         self.drop_trees(id, &removed)?;
+        indexer::remove_saved(&removed);
         Ok(true)
     }
 
@@ -386,6 +401,11 @@ impl Store {
     }
 
     /// The open database, or Unavailable while a reopen replaces it (never waits for one).
+    /// Where sessions' approximate indexes are saved (`indexer.rs`).
+    fn graph_dir(&self) -> PathBuf {
+        self.dir.join(indexer::GRAPH_DIR)
+    }
+
     fn disk(&self) -> Result<MappedRwLockReadGuard<'_, Disk>, StoreError> {
         let guard = self.disk.try_read().ok_or_else(reopening)?;
         RwLockReadGuard::try_map(guard, Option::as_ref).map_err(|_| reopening())

@@ -21,6 +21,9 @@ pub struct SessionMeta {
     /// Each frame keeps a small JPEG for people to look at (the loop inspector).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub thumbnails: bool,
+    /// How its frames are searched: exact, approximate, or auto (approximate once it is large).
+    #[serde(default)]
+    pub index: crate::index::graph::IndexKind,
 }
 
 /// Pinhole intrinsics in pixels, with optional radial-tangential distortion (k1 k2 p1 p2 k3).

@@ -39,7 +39,7 @@ pub fn robot_id_error(robot: &str) -> Option<&'static str> {
 
 /// A new session's metadata, its id checked (or picked by [`new_session_id`]).
 pub(super) fn new_meta(id: Option<String>, new: NewSession) -> Result<SessionMeta, StoreError> {
-    let NewSession { name, dim, descriptor_id, storage, default_query, camera, thumbnails } = new;
+    let NewSession { name, dim, descriptor_id, storage, default_query, camera, thumbnails, index } = new;
     if !(1..=65536).contains(&dim) {
         return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
     }
@@ -60,6 +60,7 @@ pub(super) fn new_meta(id: Option<String>, new: NewSession) -> Result<SessionMet
         default_query,
         camera,
         thumbnails,
+        index,
     })
 }
 

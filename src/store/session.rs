@@ -116,12 +116,20 @@ impl Session {
         decode_frame(&v).map_err(StoreError::Storage)
     }
 
-    pub(super) fn load(db: &sled::Db, meta: SessionMeta, search: SearchConfig) -> Result<Self, StoreError> {
+    /// The session's rows from sled, and its saved approximate index from `graphs` if that
+    /// matches them (else it is rebuilt in the background).
+    pub(super) fn load(
+        db: &sled::Db,
+        meta: SessionMeta,
+        search: SearchConfig,
+        graphs: &Path,
+    ) -> Result<Self, StoreError> {
         let trees = Trees::open(db, &meta.id)?;
         let mut index = SessionIndex::new(meta.dim, meta.storage);
         if let Some(device) = search.device {
             index.search_on(device, search.device_min_rows);
         }
+        index.set_index(meta.index, search.graph);
         let mut bytes = 0u64;
         for entry in trees.frames.iter() {
             let (k, v) = entry?;
@@ -131,6 +139,7 @@ impl Session {
             bytes += (k.len() + v.len()) as u64;
         }
         let next = index.max_frame_id().map_or(0, |m| m.saturating_add(1));
+        let graph_file = indexer::open_saved(&mut index, graphs, &meta.id);
         Ok(Self {
             meta,
             trees: RwLock::new(Some(trees)),
@@ -141,6 +150,7 @@ impl Session {
             applied: tokio::sync::Mutex::new(0),
             epoch: 0,
             used: AtomicU64::new(owners::now_ms()),
+            graph_file: parking_lot::Mutex::new(graph_file),
         })
     }
 
@@ -157,6 +167,7 @@ impl Session {
             robots: index.robots().to_vec(),
             bytes_on_disk: self.bytes.load(Relaxed),
             bytes_in_memory: index.memory_bytes(),
+            approximate_frames: index.graph_rows(),
         }
     }
 }

@@ -146,3 +146,29 @@ def test_calls_wait_for_a_server_that_is_starting(tmp_path):
     finally:
         time.sleep(1.5)
         server.stop()
+
+
+def test_index_kind_on_create_and_the_approximate_index_catches_up(server):
+    """`index` reaches the server; an approximate session reports the frames its index covers
+    and answers the corridor's queries with the same places as an exact one; a wrong kind is
+    refused before anything is sent."""
+    from loopd_client import pb
+    key = server.tenant("indexes")
+    with Client(server.grpc, key=key, ca=server.ca) as c:
+        with pytest.raises(ValueError, match="not one of"):
+            c.create_session("bad", index="fast")
+        kinds = {"exact": pb.INDEX_KIND_EXACT, "approximate": pb.INDEX_KIND_APPROXIMATE}
+        for name, kind in kinds.items():
+            assert c.create_session(name, index=name).index == kind
+            frames = [Frame(image=img, timestamp=float(i), frame_id=i) for i, img in enumerate(corridor("ref", 20))]
+            assert len(list(c.stream(name, "mapper", frames, query_options(verify=False)))) == 20
+        assert not c.get_session("exact").HasField("approximate_frames")
+        deadline = time.time() + 30
+        while c.get_session("approximate").approximate_frames != 20:
+            assert time.time() < deadline, c.get_session("approximate")
+            time.sleep(0.05)
+        assert c.create_session("auto").index == pb.INDEX_KIND_AUTO
+        for img in corridor("query", 5):
+            found = [[m.frame_id for m in c.query(name, "visitor", image=img, options=query_options(k=3, verify=False))]
+                     for name in kinds]
+            assert found[0] == found[1]

@@ -5,6 +5,7 @@ pub mod loops;
 use crate::api::error::ApiError;
 use crate::api::service::{Content, CreateSession, FrameInput, LoopMatch, LoopService, QueryOverrides, QueryTarget};
 use crate::auth::{Auth, Caller};
+use crate::index::graph::IndexKind;
 use crate::index::query::{Pose, Scope};
 use crate::index::Storage;
 use crate::pb;
@@ -104,6 +105,12 @@ fn session_to_pb(i: SessionInfo) -> pb::Session {
         robots: i.robots,
         bytes_on_disk: i.bytes_on_disk,
         thumbnails: i.meta.thumbnails,
+        index: match i.meta.index {
+            IndexKind::Auto => pb::IndexKind::Auto,
+            IndexKind::Exact => pb::IndexKind::Exact,
+            IndexKind::Approximate => pb::IndexKind::Approximate,
+        } as i32,
+        approximate_frames: i.approximate_frames.map(|n| n as u64),
     }
 }
 
@@ -198,6 +205,12 @@ impl pb::loopd_server::Loopd for GrpcApi {
             Ok(_) => Storage::F16,
             Err(_) => return Err(Status::invalid_argument(format!("unknown storage {}", r.storage))),
         };
+        let index = match pb::IndexKind::try_from(r.index) {
+            Ok(pb::IndexKind::Auto) => IndexKind::Auto,
+            Ok(pb::IndexKind::Exact) => IndexKind::Exact,
+            Ok(pb::IndexKind::Approximate) => IndexKind::Approximate,
+            Err(_) => return Err(Status::invalid_argument(format!("unknown index kind {}", r.index))),
+        };
         let create = CreateSession {
             id: Some(r.id),
             name: r.name,
@@ -205,6 +218,7 @@ impl pb::loopd_server::Loopd for GrpcApi {
             default_query: overrides(r.default_query)?,
             camera: camera(r.camera)?,
             thumbnails: r.thumbnails,
+            index,
         };
         Ok(Response::new(session_to_pb(self.service.scoped(caller).create_session(create).await?)))
     }

@@ -5,6 +5,7 @@ mod search;
 use super::error::ApiError;
 use super::kept::{loop_records, QueryFrame};
 use crate::engine::Engine;
+use crate::index::graph::IndexKind;
 use crate::index::query::{LoopQuery, Pose, Scope};
 use crate::index::Storage;
 use crate::model::network::Variant;
@@ -278,6 +279,8 @@ pub struct CreateSession {
     pub camera: Option<Camera>,
     /// Keep a small JPEG of each frame (the loop inspector shows them).
     pub thumbnails: bool,
+    /// How its frames are searched (default auto: exact until the session is large).
+    pub index: IndexKind,
 }
 
 fn intrinsics(c: &Camera) -> Intrinsics {
@@ -331,6 +334,7 @@ impl LoopService {
                     default_query: defaults,
                     camera: req.camera,
                     thumbnails: req.thumbnails,
+                    index: req.index,
                 },
             )
             .await?;

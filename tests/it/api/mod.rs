@@ -1,3 +1,4 @@
+mod approx;
 mod confidence;
 mod inspect;
 mod jobs;

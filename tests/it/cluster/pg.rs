@@ -24,6 +24,7 @@ fn meta(id: &str) -> SessionMeta {
         default_query: Default::default(),
         camera: None,
         thumbnails: false,
+        index: Default::default(),
     }
 }
 

@@ -115,6 +115,7 @@ pub fn session(name: &str, storage: loopd::index::Storage) -> loopd::store::NewS
         default_query: Default::default(),
         camera: None,
         thumbnails: false,
+        index: Default::default(),
     }
 }
 

@@ -84,12 +84,17 @@ class Client:
     # Sessions.
     def create_session(self, id: str = "", name: str = "", *, camera: Optional[Sequence[float]] = None,
                        storage: int = pb.STORAGE_UNSPECIFIED, default_query: Optional[pb.QueryOptions] = None,
-                       thumbnails: bool = False, exist_ok: bool = False) -> pb.Session:
+                       thumbnails: bool = False, index: str = "auto", exist_ok: bool = False) -> pb.Session:
         """A new session; `camera` is fx, fy, cx, cy[, k1, k2, p1, p2, k3] (verified loops then
         carry a relative pose); `thumbnails` keeps a small JPEG of each frame (the loop
-        inspector shows them). With `exist_ok` an existing session of that id is returned."""
+        inspector shows them); `index` is "auto" (exact until the session is large, then
+        approximate), "exact" or "approximate". With `exist_ok` an existing session of that id
+        is returned."""
+        kinds = {"auto": pb.INDEX_KIND_AUTO, "exact": pb.INDEX_KIND_EXACT, "approximate": pb.INDEX_KIND_APPROXIMATE}
+        if index not in kinds:
+            raise ValueError(f"index {index!r} is not one of {', '.join(kinds)}")
         request = pb.CreateSessionRequest(id=id, name=name or id, storage=storage, default_query=default_query,
-                                          thumbnails=thumbnails)
+                                          thumbnails=thumbnails, index=kinds[index])
         if camera is not None:
             v = [float(x) for x in camera]
             request.camera.CopyFrom(pb.Camera(fx=v[0], fy=v[1], cx=v[2], cy=v[3], distortion=v[4:]))

@@ -1,0 +1,304 @@
+//! The approximate index as a map grows: build rate, recall against exact search, single-query
+//! latency with and without filters, batch throughput and memory, side by side in one run with
+//! FAISS `IndexHNSWFlat` (benches/py/faiss_hnsw.py) on the same vectors.
+//!
+//! Rows: every image of ../shared/data (7,9xx real frames) embedded once with the shipped model
+//! (cached in target/bench-cache), extended to each size with synthetic rows, each a real row
+//! mixed with another (weight 0.5-1) plus isotropic Gaussian noise of norm ~0.5, renormalised:
+//! near real places, but with a noise part spread evenly over all 1,712 whitened dimensions, which
+//! the graph's PCA reduction keeps least of and no two rows share (the table shows each set's
+//! median best-match similarity beside the real set's). Frames belong to 16 robots in turn.
+//! Queries: real rows, as stored-frame queries (the frame itself excluded).
+//!
+//! env: LOOPD_BENCH_SIZES (default "100000,1000000"), LOOPD_BENCH_QUERIES (default 200),
+//!      LOOPD_BENCH_GRAPH_DIMS, LOOPD_BENCH_M, LOOPD_BENCH_EF_ADD (the graph's settings),
+//!      LOOPD_BENCH_FAISS_MAX (largest size FAISS also builds, default 100000; 0: none),
+//!      LOOPD_BENCH_SWEEP_MAX (largest size the search-time settings are swept at, default 100000),
+//!      LOOPD_BENCH_NOISE (the synthetic rows' noise norm, default 0.5)
+use indicatif::{ProgressBar, ProgressStyle};
+use loopd::index::graph::{GraphParams, IndexKind};
+use loopd::index::query::{LoopQuery, Scope};
+use loopd::index::{SessionIndex, Storage};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+const DIM: usize = 1712;
+const ROBOTS: usize = 16;
+
+fn env(name: &str, default: &str) -> String {
+    std::env::var(name).unwrap_or_else(|_| default.to_string())
+}
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// Every image under ../shared/data, embedded with the shipped model (cached).
+fn real_rows() -> anyhow::Result<Vec<Vec<f32>>> {
+    let data = root().join("../shared/data");
+    let mut files = Vec::new();
+    let mut dirs = vec![data];
+    while let Some(d) = dirs.pop() {
+        for e in std::fs::read_dir(&d)? {
+            let p = e?.path();
+            if p.is_dir() {
+                dirs.push(p);
+            } else if loopd::files::is_image(&p.file_name().unwrap_or_default().to_string_lossy()) {
+                files.push(p);
+            }
+        }
+    }
+    files.sort();
+    let weights = root().join("weights/resnet50-imagenet.safetensors");
+    let (mut model, _) = loopd::model::Model::load(
+        &weights,
+        loopd::model::config::ModelConfig::default(),
+        tch::Device::Cpu,
+        loopd::model::device::DType::F32,
+    )?;
+    model.load_heads(&root().join(loopd::cli::DEFAULT_HEADS))?;
+    let cfg = loopd::engine::EngineConfig { max_batch: 16, warm_up: false, ..Default::default() };
+    let engine = loopd::engine::Engine::start(model, cfg, Default::default())?;
+    let cache = root().join("target/bench-cache");
+    let setup = loopd::eval::run::EmbedSetup {
+        weights: &weights,
+        variant: loopd::model::network::Variant::FULL,
+        cache_dir: Some(&cache),
+        max_batch: 16,
+    };
+    loopd::eval::run::embed_files(&engine, &files, &setup, "every image of ../shared/data")
+}
+
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E3779B97F4A7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58476D1CE4E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D049BB133111EB);
+        z ^ (z >> 31)
+    }
+    fn unit(&mut self) -> f32 {
+        (self.next() >> 40) as f32 / (1u64 << 24) as f32
+    }
+    fn gauss(&mut self) -> f32 {
+        let (u, v) = (self.unit().max(1e-7), self.unit());
+        (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
+    }
+}
+
+/// `n` unit rows (row-major): the real rows first, then the synthetic extension.
+fn rows(real: &[Vec<f32>], n: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(n * DIM);
+    let mut rng = Rng(7);
+    let sigma = env("LOOPD_BENCH_NOISE", "0.5").parse::<f32>().unwrap_or(0.5) / (DIM as f32).sqrt();
+    for i in 0..n {
+        if i < real.len() {
+            out.extend_from_slice(&real[i]);
+            continue;
+        }
+        let (a, b) = (&real[rng.next() as usize % real.len()], &real[rng.next() as usize % real.len()]);
+        let w = 0.5 + 0.5 * rng.unit();
+        let mut v: Vec<f32> = a.iter().zip(b).map(|(x, y)| w * x + (1.0 - w) * y + sigma * rng.gauss()).collect();
+        loopd::index::normalize(&mut v).expect("non-zero");
+        out.extend_from_slice(&v);
+    }
+    out
+}
+
+/// The graph's settings: the defaults, or LOOPD_BENCH_GRAPH_DIMS / LOOPD_BENCH_M / LOOPD_BENCH_EF_ADD.
+fn params() -> GraphParams {
+    let d = GraphParams::default();
+    let num = |name: &str, default: usize| env(name, &default.to_string()).parse().unwrap_or(default);
+    GraphParams {
+        dims: num("LOOPD_BENCH_GRAPH_DIMS", d.dims),
+        connectivity: num("LOOPD_BENCH_M", d.connectivity),
+        expansion_add: num("LOOPD_BENCH_EF_ADD", d.expansion_add),
+        ..d
+    }
+}
+
+fn build(flat: &[f32], kind: IndexKind) -> SessionIndex {
+    let mut index = SessionIndex::new(DIM, Storage::F16);
+    index.set_index(kind, params());
+    let n = flat.len() / DIM;
+    let bar = ProgressBar::new(n as u64)
+        .with_style(ProgressStyle::with_template("  adding {pos}/{len} {wide_bar} {eta}").expect("template"));
+    for (i, row) in flat.chunks_exact(DIM).enumerate() {
+        index.push(i as u64, &format!("r{}", i % ROBOTS), i as f64, None, row);
+        if i % 4096 == 0 {
+            bar.set_position(i as u64);
+        }
+    }
+    bar.finish_and_clear();
+    index
+}
+
+fn rss_mib() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let kb: f64 = s
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches(" kB").parse().ok())
+        .unwrap_or(0.0);
+    kb / 1024.0
+}
+
+fn pct(sorted: &[f64], p: f64) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// (recall@1, recall@10, p50 ms, p99 ms) of the approximate index against the exact one.
+fn measure(
+    exact: &SessionIndex,
+    approx: &SessionIndex,
+    flat: &[f32],
+    queries: &[usize],
+    opts: &dyn Fn(usize) -> LoopQuery,
+) -> (f64, f64, f64, f64, f64) {
+    let (mut r1, mut r10, mut lat, mut lat_exact) = (0.0, 0.0, Vec::new(), Vec::new());
+    for &q in queries {
+        let d = &flat[q * DIM..(q + 1) * DIM];
+        let o = opts(q);
+        let t = Instant::now();
+        let e = exact.search(d, &o, 2);
+        lat_exact.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        let a = approx.search(d, &o, 2);
+        lat.push(t.elapsed().as_secs_f64() * 1e3);
+        let (e, a): (Vec<u64>, Vec<u64>) =
+            (e.iter().map(|m| m.frame_id).collect(), a.iter().map(|m| m.frame_id).collect());
+        r1 += (e.first() == a.first()) as u8 as f64;
+        r10 += e.iter().filter(|id| a.contains(id)).count() as f64 / e.len().max(1) as f64;
+    }
+    lat.sort_by(f64::total_cmp);
+    lat_exact.sort_by(f64::total_cmp);
+    let n = queries.len() as f64;
+    (r1 / n, r10 / n, pct(&lat, 0.5), pct(&lat, 0.99), pct(&lat_exact, 0.5))
+}
+
+/// Median best-match similarity of the rows `from..` (stored-frame queries, exact).
+fn median_best(exact: &SessionIndex, flat: &[f32], rows: impl Iterator<Item = usize>) -> f32 {
+    let mut s: Vec<f32> = rows
+        .map(|q| {
+            let o = LoopQuery { k: 1, exclude_frame: Some(q as u64), ..Default::default() };
+            exact.search(&flat[q * DIM..(q + 1) * DIM], &o, 2)[0].score
+        })
+        .collect();
+    s.sort_by(f32::total_cmp);
+    s[s.len() / 2]
+}
+
+struct Faiss {
+    build_per_s: f64,
+    ef: u64,
+    recall10: f64,
+    p50_ms: f64,
+}
+
+/// FAISS IndexHNSWFlat (M 16, efConstruction 64) on the same rows (f32, all 1,712 values), at
+/// the smallest efSearch reaching `recall10` (or its best).
+fn faiss(flat: &[f32], queries: &[usize], recall10: f64) -> Option<Faiss> {
+    let dir = tempfile::tempdir().ok()?;
+    let (rows, qs) = (dir.path().join("rows.f32"), dir.path().join("queries.txt"));
+    let bytes: Vec<u8> = flat.iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(&rows, bytes).ok()?;
+    std::fs::write(&qs, queries.iter().map(|q| q.to_string()).collect::<Vec<_>>().join("\n")).ok()?;
+    let out = std::process::Command::new(root().join(".venv/bin/python"))
+        .arg(root().join("benches/py/faiss_hnsw.py"))
+        .args([rows.as_path(), qs.as_path()].map(Path::as_os_str))
+        .arg(DIM.to_string())
+        .output()
+        .ok()?;
+    if !out.status.success() {
+        eprintln!("faiss failed: {}", String::from_utf8_lossy(&out.stderr));
+        return None;
+    }
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).ok()?;
+    let build_per_s = v["build_per_s"].as_f64()?;
+    let sweep = v["sweep"].as_array()?;
+    let pick = sweep.iter().find(|s| s["recall10"].as_f64().unwrap_or(0.0) >= recall10).or_else(|| sweep.last())?;
+    Some(Faiss {
+        build_per_s,
+        ef: pick["ef"].as_u64()?,
+        recall10: pick["recall10"].as_f64()?,
+        p50_ms: pick["p50_ms"].as_f64()?,
+    })
+}
+
+fn main() -> anyhow::Result<()> {
+    if std::env::args().any(|a| a == "--list") {
+        return Ok(());
+    }
+    let sizes: Vec<usize> =
+        env("LOOPD_BENCH_SIZES", "100000,1000000").split(',').map(|s| s.trim().parse()).collect::<Result<_, _>>()?;
+    let nq: usize = env("LOOPD_BENCH_QUERIES", "200").parse()?;
+    let faiss_max: usize = env("LOOPD_BENCH_FAISS_MAX", "100000").parse()?;
+    let sweep_max: usize = env("LOOPD_BENCH_SWEEP_MAX", "100000").parse()?;
+    let real = real_rows()?;
+    let p = params();
+    println!(
+        "approximate index (usearch HNSW, {}-d f16 graph of the {DIM}-d rows, M {}, ef add {}, ef search {}, {} threads adding); \
+         {} real rows of ../shared/data, the rest synthetic; {nq} real stored-frame queries; exact = loopd's exact kernels, 2 threads\n",
+        p.dims, p.connectivity, p.expansion_add, p.expansion_search, p.threads, real.len()
+    );
+    println!("| n | median best sim (real / synthetic) | build rows/s | recall@1 | recall@10 | p50 ms | p99 ms | exact p50 ms | same robot (1/16): recall@10, p50 ms | time 25%: recall@10, p50 ms | batch-64 q/s | graph bytes/frame | RSS GiB | FAISS HNSWFlat build rows/s | FAISS ef | FAISS recall@10 | FAISS p50 ms |");
+    println!("|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
+    let mut sweep = Vec::new();
+    for &n in &sizes {
+        let flat = rows(&real, n);
+        let exact = build(&flat, IndexKind::Exact);
+        let mut approx = build(&flat, IndexKind::Approximate);
+        let t = Instant::now();
+        approx.index_all().map_err(anyhow::Error::msg)?;
+        let rate = n as f64 / t.elapsed().as_secs_f64();
+        let step = real.len() / nq;
+        let queries: Vec<usize> = (0..nq).map(|i| i * step).collect();
+        let sim_real = median_best(&exact, &flat, queries.iter().copied());
+        let sim_syn = if n > real.len() {
+            median_best(&exact, &flat, (0..nq).map(|i| real.len() + i * (n - real.len()) / nq))
+        } else {
+            f32::NAN
+        };
+        let plain = |q: usize| LoopQuery { k: 10, exclude_frame: Some(q as u64), ..Default::default() };
+        let (r1, r10, p50, p99, exact_p50) = measure(&exact, &approx, &flat, &queries, &plain);
+        let same =
+            |q: usize| LoopQuery { robot_id: Some(format!("r{}", q % ROBOTS)), scope: Scope::SameRobot, ..plain(q) };
+        let (_, same_r10, same_p50, _, _) = measure(&exact, &approx, &flat, &queries, &same);
+        let quarter = |q: usize| LoopQuery { time_range: Some((0.0, (n / 4) as f64)), ..plain(q) };
+        let (_, tr_r10, tr_p50, _, _) = measure(&exact, &approx, &flat, &queries, &quarter);
+        let batch: Vec<Vec<f32>> = queries.iter().take(64).map(|&q| flat[q * DIM..(q + 1) * DIM].to_vec()).collect();
+        let t = Instant::now();
+        approx.search_batch(&batch, &LoopQuery { k: 10, ..Default::default() }, 2);
+        let batch_qps = batch.len() as f64 / t.elapsed().as_secs_f64();
+        let graph_bytes = approx.memory_bytes() - exact.memory_bytes();
+        // Search-time settings on the same graph: recall against time.
+        let sweeps: &[(usize, usize)] = if n <= sweep_max {
+            &[(64, 4), (128, 8), (256, 8), (256, 16), (512, 16), (512, 32), (1024, 32)]
+        } else {
+            &[]
+        };
+        for &(ef, per) in sweeps {
+            approx.tune_graph(ef, per);
+            let (r1, r10, p50, p99, _) = measure(&exact, &approx, &flat, &queries, &plain);
+            sweep.push(format!("| {n} | {ef} | {} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} |", per * 10 + 64));
+        }
+        let rss = rss_mib() / 1024.0;
+        drop(exact);
+        drop(approx);
+        let f = if n <= faiss_max { faiss(&flat, &queries, r10) } else { None };
+        let fc = |g: fn(&Faiss) -> String| f.as_ref().map_or_else(|| "-".to_string(), g);
+        println!(
+            "| {n} | {sim_real:.3} / {sim_syn:.3} | {rate:.0} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} | {exact_p50:.2} | {same_r10:.4}, {same_p50:.2} | {tr_r10:.4}, {tr_p50:.2} | {batch_qps:.0} | {} | {rss:.1} | {} | {} | {} | {} |",
+            graph_bytes / n,
+            fc(|f| format!("{:.0}", f.build_per_s)),
+            fc(|f| f.ef.to_string()),
+            fc(|f| format!("{:.4}", f.recall10)),
+            fc(|f| format!("{:.2}", f.p50_ms)),
+        );
+    }
+    println!("\nsearch-time settings on the same graphs (k = 10; candidates = per-result x 10 + 64, re-scored):\n");
+    println!("| n | ef search | candidates | recall@1 | recall@10 | p50 ms | p99 ms |\n|--:|--:|--:|--:|--:|--:|--:|");
+    sweep.iter().for_each(|row| println!("{row}"));
+    Ok(())
+}
