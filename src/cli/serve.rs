@@ -72,6 +72,9 @@ pub struct ServeArgs {
     /// exactly instead (0: every query of an approximate session goes through the graph).
     #[arg(long, env = "LOOPD_APPROX_EXACT_BELOW", default_value_t = GraphParams::default().exact_below)]
     pub approx_exact_below: usize,
+    /// ...and so is one whose filters leave less than this share of the session's frames.
+    #[arg(long, env = "LOOPD_APPROX_EXACT_SHARE", default_value_t = GraphParams::default().exact_share)]
+    pub approx_exact_share: f32,
     /// A session's approximate index is saved (`<data-dir>/graphs/`) each time it has grown by
     /// this many frames, and at most a minute after it last grew, so a restart loads it.
     #[arg(long, env = "LOOPD_APPROX_SAVE_FRAMES", default_value_t = GraphParams::default().save_rows)]
@@ -187,6 +190,7 @@ impl ServeArgs {
                 dims: self.approx_dims,
                 expansion_search: self.approx_expansion.max(1),
                 exact_below: self.approx_exact_below,
+                exact_share: self.approx_exact_share.clamp(0.0, 1.0),
                 save_rows: self.approx_save_frames.max(1),
                 ..defaults.graph
             },

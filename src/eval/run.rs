@@ -238,7 +238,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
     }
     if spec.index == IndexKind::Approximate {
         // Every query through the graph, however few frames its filter leaves.
-        index.set_index(IndexKind::Approximate, GraphParams { exact_below: 0, ..Default::default() });
+        index.set_index(IndexKind::Approximate, GraphParams { exact_below: 0, exact_share: 0.0, ..Default::default() });
         index.index_all().map_err(anyhow::Error::msg)?;
     }
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());

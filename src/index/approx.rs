@@ -158,7 +158,9 @@ impl SessionIndex {
         let covered = graph.covered().min(self.frames.len());
         let n = self.frames.len();
         let mut heap = TopK::new(k);
-        if self.allowed_estimate(filter) < self.graph_params.exact_below {
+        let allowed = self.allowed_estimate(filter);
+        let p = &self.graph_params;
+        if allowed < p.exact_below || (allowed as f32) < p.exact_share * n as f32 {
             // Few rows pass: score exactly those (the filter first, then the dot product).
             for row in 0..n {
                 if filter.allows(row) {

@@ -64,6 +64,11 @@ pub struct GraphParams {
     pub threads: usize,
     /// A filter expected to leave fewer rows than this is searched exactly over those rows.
     pub exact_below: usize,
+    /// ...and so is one expected to leave less than this share of the session: a graph search
+    /// through a filter that rejects most nodes loses recall and time (benches/ann.rs: at 10^6
+    /// frames, one robot of 16 gave recall@10 0.60 in 28.6 ms; the exact scan of its frames takes
+    /// about a sixteenth of 180 ms).
+    pub exact_share: f32,
     /// The store saves a session's graph once it covers this many rows more than the saved one
     /// (and at most once a minute otherwise), so a restart loads it instead of rebuilding.
     pub save_rows: usize,
@@ -80,6 +85,7 @@ impl Default for GraphParams {
             candidates_per_result: 16,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             exact_below: 4096,
+            exact_share: 0.125,
             save_rows: 50_000,
         }
     }

@@ -138,7 +138,12 @@ async fn server() -> (String, String) {
                 let dir = tempfile::tempdir().unwrap();
                 let cfg = ServerConfig {
                     search: SearchConfig {
-                        graph: GraphParams { exact_below: 0, min_frames: AUTO_FRAMES, ..Default::default() },
+                        graph: GraphParams {
+                            exact_below: 0,
+                            exact_share: 0.0,
+                            min_frames: AUTO_FRAMES,
+                            ..Default::default()
+                        },
                         ..Default::default()
                     },
                     ..ServerConfig::on_loopback(dir.path().to_path_buf())
@@ -366,7 +371,16 @@ async fn a_saved_index_is_loaded_at_restart_and_a_corrupt_one_is_rebuilt() {
     let exact = LoopdClient::connect(grpc).await.unwrap();
     let (_, frames) = pairs().await.iter().find(|(s, _)| s.name == "corridor").unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let flags = ["--heads", loopd::cli::DEFAULT_HEADS, "--approx-save-frames", "1", "--approx-exact-below", "0"];
+    let flags = [
+        "--heads",
+        loopd::cli::DEFAULT_HEADS,
+        "--approx-save-frames",
+        "1",
+        "--approx-exact-below",
+        "0",
+        "--approx-exact-share",
+        "0",
+    ];
     let file = dir.path().join("graphs/c.usearch");
     let same_answers = |server: String| {
         let mut exact = exact.clone();
