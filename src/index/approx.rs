@@ -140,13 +140,13 @@ impl SessionIndex {
         }
     }
 
-    /// True when searches go through the graph (it exists and covers some rows).
+    /// True when searches go through the graph (it exists and covers at least half the rows).
     pub(super) fn searches_graph(&self) -> bool {
-        self.graph.as_ref().is_some_and(|g| g.covered() > 0)
+        self.graph.as_ref().is_some_and(|g| g.covered() > 0 && 2 * g.covered() >= self.frames.len())
     }
 
     /// Top-k (score, row) through the graph, best first; None when this index searches exactly
-    /// (no graph yet, or the filter leaves few enough rows to scan them).
+    /// (no graph yet, or one covering less than half the rows).
     pub(super) fn graph_search(
         &self,
         q: &[f32],
@@ -154,7 +154,12 @@ impl SessionIndex {
         k: usize,
         filter: &Filter,
     ) -> Option<Vec<(f32, usize)>> {
-        let graph = self.graph.as_ref().filter(|g| g.covered() > 0)?;
+        // Mostly not in the graph yet (a rebuild after a restart): the exact search, on every
+        // core, is faster than the graph plus a one-core scan of the rest.
+        if !self.searches_graph() {
+            return None;
+        }
+        let graph = self.graph.as_ref()?;
         let covered = graph.covered().min(self.frames.len());
         let n = self.frames.len();
         let mut heap = TopK::new(k);
