@@ -167,7 +167,7 @@ impl Graph {
             return Err(format!("rows from {start} added to a graph covering {}", self.covered()));
         }
         // Concurrent inserts into a small graph link it worse (measured: 111 Corridor rows on two
-        // threads lost 1.3% of recall@5); one thread until it has grown.
+        // threads lost 1.3% of recall@5 in a one-off probe); one thread until it has grown.
         let threads = if start < SERIAL_ROWS { 1 } else { self.params.threads.clamp(1, n.max(1)) };
         let want = start + n;
         if self.index.capacity() < want {
