@@ -4,7 +4,7 @@
 //! real set of ../shared/data (desk, EuRoC, Corridor, a Nordland validation stretch), and every
 //! query option keeps its meaning. Descriptors come from the server's own model (`/v1/embed`).
 use crate::common::*;
-use loopd::api::server::{RunningServer, ServerConfig};
+use loopd::api::server::ServerConfig;
 use loopd::index::graph::GraphParams;
 use loopd::pb;
 use loopd::pb::loopd_client::LoopdClient;
@@ -131,30 +131,14 @@ const AUTO_FRAMES: usize = 150;
 async fn server() -> (String, String) {
     static S: std::sync::OnceLock<(String, String)> = std::sync::OnceLock::new();
     S.get_or_init(|| {
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let rt = tokio::runtime::Runtime::new().unwrap();
-            rt.block_on(async move {
-                let dir = tempfile::tempdir().unwrap();
-                let cfg = ServerConfig {
-                    search: SearchConfig {
-                        graph: GraphParams {
-                            exact_below: 0,
-                            exact_share: 0.0,
-                            min_frames: AUTO_FRAMES,
-                            ..Default::default()
-                        },
-                        ..Default::default()
-                    },
-                    ..ServerConfig::on_loopback(dir.path().to_path_buf())
-                };
-                let server = RunningServer::start(cfg, shipped_model()).await.unwrap();
-                tx.send((format!("http://{}", server.grpc_addr), format!("http://{}", server.http_addr))).unwrap();
-                std::future::pending::<()>().await;
-                drop((server, dir));
-            });
-        });
-        rx.recv().unwrap()
+        let config = |dir| ServerConfig {
+            search: SearchConfig {
+                graph: GraphParams { exact_below: 0, exact_share: 0.0, min_frames: AUTO_FRAMES, ..Default::default() },
+                ..Default::default()
+            },
+            ..ServerConfig::on_loopback(dir)
+        };
+        background_server(config, shipped_model)
     })
     .clone()
 }

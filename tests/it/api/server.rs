@@ -18,28 +18,14 @@ struct Server {
 async fn server() -> &'static Server {
     static S: std::sync::OnceLock<Server> = std::sync::OnceLock::new();
     S.get_or_init(|| {
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let rt = tokio::runtime::Runtime::new().unwrap();
-            rt.block_on(async move {
-                let dir = tempfile::tempdir().unwrap();
-                let cfg = ServerConfig {
-                    engine: EngineConfig { max_batch: 16, max_delay: Duration::from_millis(5), ..Default::default() },
-                    limits: ImageLimits { max_bytes: 2 << 20, ..Default::default() },
-                    max_jobs: 2,
-                    ..ServerConfig::on_loopback(dir.path().to_path_buf())
-                };
-                let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
-                tx.send(Server {
-                    grpc: format!("http://{}", server.grpc_addr),
-                    http: format!("http://{}", server.http_addr),
-                })
-                .unwrap();
-                std::future::pending::<()>().await;
-                drop((server, dir));
-            });
-        });
-        rx.recv().unwrap()
+        let config = |dir| ServerConfig {
+            engine: EngineConfig { max_batch: 16, max_delay: Duration::from_millis(5), ..Default::default() },
+            limits: ImageLimits { max_bytes: 2 << 20, ..Default::default() },
+            max_jobs: 2,
+            ..ServerConfig::on_loopback(dir)
+        };
+        let (grpc, http) = background_server(config, imagenet_model);
+        Server { grpc, http }
     })
 }
 

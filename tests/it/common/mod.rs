@@ -139,3 +139,25 @@ pub async fn post_json(
 ) -> serde_json::Value {
     http.post(url).json(body).send().await.expect("the server answers").json().await.expect("a JSON answer")
 }
+
+/// Starts a real server on a thread and runtime of its own, so that it outlives each test's
+/// runtime (one server per test file, the model loaded once); its gRPC and HTTP URLs. `config`
+/// gets a fresh data directory, which lasts as long as the process.
+pub fn background_server(
+    config: impl FnOnce(PathBuf) -> loopd::api::server::ServerConfig + Send + 'static,
+    model: impl FnOnce() -> Model + Send + 'static,
+) -> (String, String) {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let rt = tokio::runtime::Runtime::new().unwrap();
+        rt.block_on(async move {
+            let dir = tempfile::tempdir().unwrap();
+            let server =
+                loopd::api::server::RunningServer::start(config(dir.path().to_path_buf()), model()).await.unwrap();
+            tx.send((format!("http://{}", server.grpc_addr), format!("http://{}", server.http_addr))).unwrap();
+            std::future::pending::<()>().await;
+            drop((server, dir));
+        });
+    });
+    rx.recv().unwrap()
+}
