@@ -153,6 +153,7 @@ impl SessionIndex {
         opts: &LoopQuery,
         k: usize,
         filter: &Filter,
+        threads: usize,
     ) -> Option<Vec<(f32, usize)>> {
         // Mostly not in the graph yet (a rebuild after a restart): the exact search, on every
         // core, is faster than the graph plus a one-core scan of the rest.
@@ -166,16 +167,7 @@ impl SessionIndex {
         let allowed = self.allowed_estimate(filter);
         let p = &self.graph_params;
         if allowed < p.exact_below || (allowed as f32) < p.exact_share * n as f32 {
-            // Few rows pass: score exactly those (the filter first, then the dot product).
-            for row in 0..n {
-                if filter.allows(row) {
-                    let score = self.host_dot(q, row);
-                    if score >= opts.min_score {
-                        heap.push(score, row);
-                    }
-                }
-            }
-            return Some(heap.sorted());
+            return Some(self.subset_scan(q, opts, k, filter, allowed, threads));
         }
         let mut reduced = Vec::with_capacity(graph.dims());
         graph.reduce(q, &mut reduced);
@@ -203,6 +195,45 @@ impl SessionIndex {
             }
         }
         Some(heap.sorted())
+    }
+
+    /// Top-k (score, row) among the rows `filter` allows, exactly: the filter first, then the
+    /// kernel over each run of allowed rows (a robot's frames, a time window), blocks on up to
+    /// `threads` cores once `allowed` rows are worth them.
+    fn subset_scan(
+        &self,
+        q: &[f32],
+        opts: &LoopQuery,
+        k: usize,
+        filter: &Filter,
+        allowed: usize,
+        threads: usize,
+    ) -> Vec<(f32, usize)> {
+        let threads = if allowed * self.dim < PARALLEL_MIN_VALUES { 1 } else { threads };
+        let init = || (TopK::new(k), vec![0f32; CHUNK_ROWS]);
+        let parts = self.scan(CHUNK_ROWS, threads, init, |(heap, scores), s, e| {
+            let mut row = s;
+            while row < e {
+                if !filter.allows(row) {
+                    row += 1;
+                    continue;
+                }
+                let first = row;
+                while row < e && filter.allows(row) {
+                    row += 1;
+                }
+                let out = &mut scores[..row - first];
+                self.host_dots(q, first, out);
+                for (i, &score) in out.iter().enumerate() {
+                    if score >= opts.min_score {
+                        heap.push(score, first + i);
+                    }
+                }
+            }
+        });
+        let mut heap = TopK::new(k);
+        parts.into_iter().for_each(|(h, _)| heap.merge(h));
+        heap.sorted()
     }
 
     /// Rows the filter is expected to let through, from an evenly spaced sample.

@@ -153,12 +153,17 @@ impl SessionIndex {
     /// The host kernel's score of one stored row.
     pub(super) fn host_dot(&self, q: &[f32], row: usize) -> f32 {
         let mut out = [0f32];
-        let range = row * self.dim..(row + 1) * self.dim;
-        match &self.rows {
-            Rows::F16(v) => dots_f16(q, &v[range], &mut out),
-            Rows::F32(v) => dots_f32(q, &v[range], &mut out),
-        }
+        self.host_dots(q, row, &mut out);
         out[0]
+    }
+
+    /// The host kernel's scores of the stored rows `first..first + out.len()`.
+    pub(super) fn host_dots(&self, q: &[f32], first: usize, out: &mut [f32]) {
+        let range = first * self.dim..(first + out.len()) * self.dim;
+        match &self.rows {
+            Rows::F16(v) => dots_f16(q, &v[range], out),
+            Rows::F32(v) => dots_f32(q, &v[range], out),
+        }
     }
 
     pub(super) fn storage(&self) -> Storage {

@@ -355,7 +355,7 @@ impl SessionIndex {
         if k == 0 || self.frames.is_empty() {
             return Vec::new();
         }
-        if let Some(found) = self.graph_search(q, opts, k, &filter) {
+        if let Some(found) = self.graph_search(q, opts, k, &filter, threads) {
             return found.into_iter().map(|(score, row)| self.to_match(score, row)).collect();
         }
         if let Some(mut found) = self.device_top(q, opts, k, &filter) {
