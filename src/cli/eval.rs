@@ -2,6 +2,7 @@ use super::{ModelArgs, VariantArgs};
 use crate::eval::run::{run as run_eval, EvalSpec};
 use crate::index::graph::IndexKind;
 use crate::index::query::VerifyOptions;
+use crate::verify::features::{parse_descriptor_bits, FeatureParams, DEFAULT_DESCRIPTOR_BITS};
 use crate::verify::geometric::Intrinsics;
 use anyhow::Result;
 use clap::Args;
@@ -70,6 +71,12 @@ pub struct EvalArgs {
     /// Inliers for a verified loop.
     #[arg(long, default_value_t = 30)]
     pub min_inliers: usize,
+    /// ORB features extracted per frame (as the server's `--max-features`).
+    #[arg(long, default_value_t = FeatureParams::default().max_features)]
+    pub max_features: usize,
+    /// ORB descriptor bits kept per keypoint (as the server's `--feature-bits`).
+    #[arg(long, default_value_t = DEFAULT_DESCRIPTOR_BITS, value_parser = parse_descriptor_bits)]
+    pub feature_bits: usize,
     /// Frames compared along the trajectories in sequence verification (L).
     #[arg(long, default_value_t = 40)]
     pub sequence_length: usize,
@@ -162,7 +169,9 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         calibrator: None,
         samples_out: a.samples_out.as_deref(),
         index: IndexKind::parse(&a.index).map_err(anyhow::Error::msg)?,
+        features: FeatureParams { max_features: a.max_features, descriptor_bits: a.feature_bits, ..Default::default() },
     };
+    spec.features.validate()?;
     let variant = a.variant.variant();
     let out = run_eval(model, &spec, &a.model.weights, variant, Some(&a.cache_dir), &a.model.calibration())?;
     if a.json {

@@ -7,7 +7,7 @@ use crate::index::graph::GraphParams;
 use crate::model::device::parse_device;
 use crate::model::preprocess::ImageLimits;
 use crate::store::SearchConfig;
-use crate::verify::features::FeatureParams;
+use crate::verify::features::{parse_descriptor_bits, FeatureParams, DEFAULT_DESCRIPTOR_BITS};
 use crate::verify::pool::VerifyConfig;
 use anyhow::Result;
 use clap::Args;
@@ -86,6 +86,11 @@ pub struct ServeArgs {
     /// ORB features extracted per frame for geometric verification.
     #[arg(long, env = "LOOPD_MAX_FEATURES", default_value_t = 1000)]
     pub max_features: usize,
+    /// ORB descriptor bits kept per keypoint (a multiple of 8 in 64..=256): the first tests of
+    /// ORB's pattern. 112 stores 17 bytes per keypoint, 256 stores 35 (docs/verification.md).
+    #[arg(long, env = "LOOPD_FEATURE_BITS", default_value_t = DEFAULT_DESCRIPTOR_BITS,
+          value_parser = parse_descriptor_bits)]
+    pub feature_bits: usize,
     /// Largest stored feature record per frame (bytes; 0 keeps no features, so stored frames
     /// cannot be verified).
     #[arg(long, env = "LOOPD_MAX_FEATURE_BYTES", default_value_t = 64 << 10)]
@@ -256,7 +261,11 @@ impl ServeArgs {
             verify: {
                 let defaults = VerifyConfig::default();
                 VerifyConfig {
-                    features: FeatureParams { max_features: self.max_features.clamp(1, 20_000), ..defaults.features },
+                    features: FeatureParams {
+                        max_features: self.max_features.clamp(1, 20_000),
+                        descriptor_bits: self.feature_bits,
+                        ..defaults.features
+                    },
                     max_feature_bytes: self.max_feature_bytes,
                     workers: self.verify_workers.unwrap_or(defaults.workers).max(1),
                 }

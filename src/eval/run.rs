@@ -179,6 +179,8 @@ pub struct EvalSpec<'a> {
     /// Exact search, or the approximate index (the server's, built over every reference frame
     /// before the first query); auto means exact here.
     pub index: IndexKind,
+    /// Local features as the server extracts them (`--max-features`, `--feature-bits`).
+    pub features: FeatureParams,
 }
 
 #[derive(Serialize)]
@@ -260,7 +262,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
     };
     let features = |files: &[PathBuf], label: &str| -> Result<Vec<Result<Features, String>>> {
         if v.geometric {
-            extract_all(files, label)
+            extract_all(files, label, &spec.features)
         } else {
             Ok(Vec::new())
         }
@@ -422,15 +424,15 @@ fn describe_verify(v: &VerifyOptions) -> String {
 }
 
 /// Local features of every file (or why not), extracted as the server extracts them, on all cores.
-fn extract_all(files: &[PathBuf], label: &str) -> Result<Vec<Result<Features, String>>> {
+fn extract_all(files: &[PathBuf], label: &str, params: &FeatureParams) -> Result<Vec<Result<Features, String>>> {
     let bar = ProgressBar::new(files.len() as u64)
         .with_style(ProgressStyle::with_template("{msg} {pos}/{len} {wide_bar} {per_sec}").expect("template"))
         .with_message(label.to_string());
-    let (params, limits) = (FeatureParams::default(), ImageLimits::default());
+    let limits = ImageLimits::default();
     let one = |p: &PathBuf| {
         let r = std::fs::read(p)
             .map_err(|e| format!("{}: {e}", p.display()))
-            .and_then(|b| from_image_bytes(&b, &limits, &params).map_err(|e| e.to_string()));
+            .and_then(|b| from_image_bytes(&b, &limits, params).map_err(|e| e.to_string()));
         bar.inc(1);
         r
     };

@@ -84,6 +84,7 @@ pub fn validate(spec: &TrainSpec, heads: Option<&Path>) -> Result<Vec<ValScore>>
                 calibrator: None,
                 samples_out: None,
                 index: Default::default(),
+                features: Default::default(),
             };
             let r =
                 evaluate_sequences(&engine, &es, &setup).with_context(|| format!("validation set {}", v.name))?.report;

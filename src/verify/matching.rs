@@ -11,7 +11,7 @@ use opencv::prelude::*;
 /// does not dispatch the Hamming kernel, so BFMatcher is ~4x slower than the plain scan.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Matcher {
-    /// Plain-Rust scan over u64 words with `count_ones` (default).
+    /// Plain-Rust scan over u64 words with `count_ones` (default); two words at 112 bits.
     Scan,
     /// OpenCV `BFMatcher(NORM_HAMMING).knnMatch(k = 2)`.
     OpenCv,
@@ -50,32 +50,49 @@ pub(super) fn ratio_matches(
     Ok(best.iter().enumerate().filter_map(|(ci, b)| b.map(|(qi, _)| (qi, ci))).collect())
 }
 
-fn as_words(f: &Features) -> Vec<[u64; 4]> {
+/// Bytes both sets keep of each descriptor: they are matched on these tests only.
+fn common_bytes(q: &Features, c: &Features) -> usize {
+    q.descriptor_bytes.min(c.descriptor_bytes).clamp(1, DESCRIPTOR_BYTES)
+}
+
+/// Each descriptor's first `bytes` bytes as N little-endian u64 words (zero beyond `bytes`).
+fn as_words<const N: usize>(f: &Features, bytes: usize) -> Vec<[u64; N]> {
     f.descriptors
         .iter()
         .map(|d| {
-            let w = |k: usize| {
+            let mut w = [0u64; N];
+            for (k, word) in w.iter_mut().enumerate() {
                 let mut b = [0u8; 8];
-                b.copy_from_slice(&d[8 * k..8 * k + 8]);
-                u64::from_le_bytes(b)
-            };
-            [w(0), w(1), w(2), w(3)]
+                let end = (8 * k + 8).min(bytes);
+                if end > 8 * k {
+                    b[..end - 8 * k].copy_from_slice(&d[8 * k..end]);
+                }
+                *word = u64::from_le_bytes(b);
+            }
+            w
         })
         .collect()
 }
 
 /// Exhaustive Hamming 2-NN; same result as BFMatcher(NORM_HAMMING).knnMatch(k=2), ties included.
 fn knn2_scan(q: &Features, c: &Features) -> Vec<Knn2> {
-    let (qw, cw) = (as_words(q), as_words(c));
+    let bytes = common_bytes(q, c);
+    match bytes.div_ceil(8) {
+        1 => knn2_words::<1>(q, c, bytes),
+        2 => knn2_words::<2>(q, c, bytes),
+        3 => knn2_words::<3>(q, c, bytes),
+        _ => knn2_words::<4>(q, c, bytes),
+    }
+}
+
+fn knn2_words<const N: usize>(q: &Features, c: &Features, bytes: usize) -> Vec<Knn2> {
+    let (qw, cw) = (as_words::<N>(q, bytes), as_words::<N>(c, bytes));
     qw.iter()
         .enumerate()
         .map(|(qi, a)| {
             let mut m = Knn2 { query: qi, train: 0, best: u32::MAX, second: u32::MAX };
             for (ci, b) in cw.iter().enumerate() {
-                let d = (a[0] ^ b[0]).count_ones()
-                    + (a[1] ^ b[1]).count_ones()
-                    + (a[2] ^ b[2]).count_ones()
-                    + (a[3] ^ b[3]).count_ones();
+                let d: u32 = (0..N).map(|k| (a[k] ^ b[k]).count_ones()).sum();
                 if d < m.best {
                     m.second = m.best;
                     m.best = d;
@@ -89,13 +106,16 @@ fn knn2_scan(q: &Features, c: &Features) -> Vec<Knn2> {
         .collect()
 }
 
-fn descriptor_mat(f: &Features) -> opencv::Result<opencv::boxed_ref::BoxedRef<'_, Mat>> {
-    Mat::new_rows_cols_with_data(f.len() as i32, DESCRIPTOR_BYTES as i32, f.descriptors.as_flattened())
+/// The descriptors' first `bytes` bytes, one row each (what BFMatcher takes).
+fn descriptor_mat(f: &Features, bytes: usize) -> opencv::Result<Mat> {
+    let rows: Vec<u8> = f.descriptors.iter().flat_map(|d| d[..bytes].iter().copied()).collect();
+    Mat::new_rows_cols_with_data(f.len() as i32, bytes as i32, &rows)?.try_clone()
 }
 
 fn knn2_opencv(q: &Features, c: &Features) -> opencv::Result<Vec<Knn2>> {
-    let qd = descriptor_mat(q)?;
-    let cd = descriptor_mat(c)?;
+    let bytes = common_bytes(q, c);
+    let qd = descriptor_mat(q, bytes)?;
+    let cd = descriptor_mat(c, bytes)?;
     let matcher = BFMatcher::create(core::NORM_HAMMING, false)?;
     let mut knn = Vector::<Vector<DMatch>>::new();
     matcher.knn_train_match(&qd, &cd, &mut knn, 2, &core::no_array(), false)?;

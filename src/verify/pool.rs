@@ -59,7 +59,9 @@ impl Verifier {
     pub async fn extract(&self, image: bytes::Bytes, limits: ImageLimits) -> Result<Features, VerifyError> {
         let cfg = self.cfg.clone();
         let mut f = self.run(move || from_image_bytes(&image, &limits, &cfg.features)).await??;
-        let fit = self.cfg.max_feature_bytes.saturating_sub(Features::encoded_len(0)) / Features::encoded_len(1).max(1);
+        let bytes = f.descriptor_bytes;
+        let fit = self.cfg.max_feature_bytes.saturating_sub(Features::encoded_len(0, bytes))
+            / (Features::encoded_len(1, bytes) - Features::encoded_len(0, bytes)).max(1);
         f.truncate(fit);
         Ok(f)
     }

