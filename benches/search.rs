@@ -228,6 +228,7 @@ fn store_bench() -> anyhow::Result<()> {
                             descriptor: row.clone(),
                             features: None,
                             thumbnail: None,
+                            idempotency_key: None,
                         };
                         store.add_frames(&session, vec![f]).await?;
                         bar.inc(1);

@@ -25,6 +25,7 @@ pub fn frame(i: usize) -> NewFrame {
         descriptor: descriptor(i),
         features: None,
         thumbnail: None,
+        idempotency_key: None,
     }
 }
 

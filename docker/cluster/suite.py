@@ -24,7 +24,7 @@ import urllib.request
 
 import grpc
 
-from loopd_client import NO_RETRY, Client, Frame, pb
+from loopd_client import NO_RETRY, Client, Frame, RetryPolicy, pb
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 DATA = pathlib.Path(os.environ.get("LOOPD_SHARED_DATA", ROOT.parent / "shared/data")).resolve()
@@ -36,8 +36,8 @@ NODES = ("loopd1", "loopd2", "loopd3")
 PATRONI = ["patronictl", "-c", "/etc/loopd-cluster/patroni.yml"]
 figures: list[tuple[str, str]] = []
 # The checks that can be run alone (the start and the embedding always run: the rest needs them).
-CHECKS = ("T6", "T5", "members", "jobs", "latency", "throughput", "T1", "T3", "T2", "T4", "T7", "T8", "primary",
-          "robot")
+CHECKS = ("T6", "T5", "members", "jobs", "latency", "throughput", "T1", "T3", "T2", "T4", "T4b", "T7", "T8",
+          "primary", "robot")
 selected: set[str] = set()
 
 
@@ -203,8 +203,9 @@ def logs(container: str) -> str:
 
 class Load:
     """Bounded load through the balancer while a fault happens: one writer storing frames with
-    ids (each tried again until stored), one querier. Records what was acknowledged, every error
-    and every frame id any answer held."""
+    ids (each tried again until stored), one writer storing frames with server-assigned ids in
+    a session of its own (the client's retries carry the frame's idempotency key, issue #34), one
+    querier. Records what was acknowledged, every error and every frame id any answer held."""
 
     def __init__(self, cluster: Cluster, session: str, descriptors: list[list[float]], rate: float = 25):
         self.cluster, self.session, self.descriptors, self.rate = cluster, session, descriptors, rate
@@ -216,9 +217,15 @@ class Load:
         self.stale_answers = 0
         self.stop = threading.Event()
         self.next_id = 0
-        self.threads = [threading.Thread(target=self.write), threading.Thread(target=self.query)]
+        self.keyed_session = f"{session}-keyed"
+        self.keyed_acked = 0  # server-id writes acknowledged (after the client's retries)
+        self.keyed_unknown = 0  # server-id writes whose retries ran out: stored or not
+        self.threads = [threading.Thread(target=self.write), threading.Thread(target=self.query),
+                        threading.Thread(target=self.keyed_write)]
 
     def __enter__(self):
+        with self.cluster.grpc() as c:
+            c.create_session(self.keyed_session)
         for t in self.threads:
             t.start()
         return self
@@ -253,6 +260,22 @@ class Load:
                         time.sleep(0.1)
                 self.stop.wait(1 / self.rate)
 
+    def keyed_write(self) -> None:
+        """Server-assigned ids, each write retried by the client (after UNAVAILABLE and after its
+        5 s deadline) with the idempotency key it sends by default."""
+        with self.cluster.grpc(retry=RetryPolicy(deadline=60), timeout=5) as c:
+            i = 0
+            while not self.stop.is_set():
+                d = self.descriptors[i % len(self.descriptors)]
+                try:
+                    c.add_frame(self.keyed_session, "keyed", Frame(descriptor=d, timestamp=float(i)))
+                    self.keyed_acked += 1
+                except grpc.RpcError as e:
+                    self.error(e)
+                    self.keyed_unknown += 1
+                i += 1
+                self.stop.wait(1 / self.rate)
+
     def query(self) -> None:
         with self.cluster.grpc() as c:
             while not self.stop.is_set():
@@ -284,6 +307,12 @@ class Load:
         assert not phantom, f"{what}: answers held frames that are not stored: {sorted(phantom)[:20]}"
         unexpected = set(self.errors) - {"UNAVAILABLE", "DEADLINE_EXCEEDED", "CANCELLED"}
         assert not unexpected, f"{what}: errors other than 'not now': {self.errors}"
+        # Server-assigned ids: every acknowledged write stored, none twice (a retry that stored
+        # its frame again would count beyond what was sent).
+        keyed = len(cluster.stored(self.keyed_session))
+        sent = self.keyed_acked + self.keyed_unknown
+        assert self.keyed_acked <= keyed <= sent, \
+            f"{what}: {keyed} frames stored for {self.keyed_acked} acknowledged of {sent} keyed writes"
 
 
 def main() -> None:
@@ -588,6 +617,45 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         load.verify(cluster, "T4 after it rejoined")
         print(f"     {old} -> {new}; {len(load.acked)} acknowledged, errors {load.errors}, gap {gap:.1f} s",
               flush=True)
+
+    @check("T4b the primary cut off from every network (DNS and etcd gone): it stops taking writes within "
+           "Patroni's ttl, one primary, no loss", "T4b")
+    def _():
+        with cluster.grpc() as c:
+            c.create_session("t4b")
+        old = cluster.leader()
+        cut_from = [f"{PROJECT}_repl", f"{PROJECT}_data"]
+        with Load(cluster, "t4b", descriptors) as load:
+            time.sleep(4)
+            cut = time.monotonic()
+            for network in cut_from:
+                sh("docker", "network", "disconnect", network, cluster.container(old))
+            new = until("a new leader", lambda: cluster.leader_other_than(old), 90)
+            elected = time.monotonic()
+
+            def demoted():  # asked inside its container: the cut does not stop docker exec
+                try:
+                    return cluster.sql(old, "SELECT pg_is_in_recovery()", timeout=5) != "f"
+                except Exception:  # noqa: BLE001 (stopped or restarting: not writable)
+                    return True
+            until("the cut-off primary stops taking writes", demoted, 90, every=0.5)
+            writable_for = time.monotonic() - cut
+            until("writes acknowledged again", lambda: load.ack_times and load.ack_times[-1] > cut + 0.5, 90)
+            time.sleep(3)
+            gap = load.gap(cut)
+        load.verify(cluster, "T4b during the cut")
+        both = max(0.0, cut + writable_for - elected)
+        figures.append(("a primary cut off from every network: writable after the cut for, s", f"{writable_for:.1f}"))
+        figures.append(("  ... while a new primary was elected (two writable), s", f"{both:.1f}"))
+        figures.append(("  ... write gap, s", f"{gap:.1f}"))
+        assert both <= 10, f"two writable primaries for {both:.1f} s (Patroni's ttl is 10 s)"
+        assert gap < 30, f"writes stalled {gap:.1f} s"
+        sh("docker", "network", "connect", "--alias", f"{old}-repl", cut_from[0], cluster.container(old))
+        sh("docker", "network", "connect", cut_from[1], cluster.container(old))
+        until("the old primary back as a standby", cluster.healthy, 120, every=1)
+        load.verify(cluster, "T4b after it rejoined")
+        print(f"     {old} -> {new}; {len(load.acked)} acknowledged, errors {load.errors}, writable "
+              f"{writable_for:.1f} s after the cut, gap {gap:.1f} s", flush=True)
 
     @check("T7 both standbys killed: writes refused at once (UNAVAILABLE, not ready), none acknowledged; "
            "writes again once a standby streams", "T7")

@@ -102,7 +102,9 @@ impl From<StoreError> for ApiError {
             StoreError::SessionNotFound(_) | StoreError::FrameNotFound(..) | StoreError::LoopNotFound(_) => {
                 ApiError::NotFound(msg)
             }
-            StoreError::SessionExists(_) | StoreError::FrameExists(..) => ApiError::AlreadyExists(msg),
+            StoreError::SessionExists(_) | StoreError::FrameExists(..) | StoreError::KeyReused(_) => {
+                ApiError::AlreadyExists(msg)
+            }
             StoreError::InvalidArgument(_) => ApiError::InvalidArgument(msg),
             StoreError::Storage(_) => ApiError::Internal(msg),
             StoreError::Stopped | StoreError::Unavailable(_) => ApiError::Unavailable(msg),

@@ -7,6 +7,7 @@
 //!
 //! Tenants, kept loops (with verdicts) and sequence jobs' records are in the log as well.
 use super::cluster_jobs::LoggedJob;
+use super::keys::KeyGuard;
 use super::loops::{KeptLoops, LoopRecord, Verdict};
 use super::operations::Operations;
 use super::owners::{owners, ClusterView, HeldSession, Membership};
@@ -118,13 +119,23 @@ impl Operations for Cluster {
         s: &Arc<Session>,
         frames: Vec<NewFrame>,
         loops: KeptLoops,
+        key: Option<KeyGuard>,
     ) -> Result<Vec<u64>, StoreError> {
         self.writable()?;
         let appended = self.log.append_keeping(&s.meta, &frames, loops).await?;
+        if appended.replayed {
+            // An earlier write stored it (through this node or another): brought here, not again.
+            if let Err(e) = self.catch_up(store, s, appended.version).await {
+                tracing::warn!(session = %s.meta.id, error = %e, "a replayed frame is in the cluster, not yet here");
+            }
+            return Ok(appended.ids);
+        }
         // Acknowledged from here on: a failure below leaves the frames to the next catch-up.
         if let Err(e) = self.apply_own(store, s, &frames, &appended).await {
             tracing::warn!(session = %s.meta.id, error = %e, "frames stored in the cluster, not yet applied here");
         }
+        // The key goes once its frame is applied here (its key noted with it) or left to catch-up.
+        drop(key);
         Ok(appended.ids)
     }
 
@@ -449,6 +460,9 @@ impl Session {
             trees.thumbs.insert(frame_key(id), thumbnail)?;
         }
         self.index.write().push(id, &header.robot_id, header.timestamp, header.pose, descriptor);
+        if let Some(key) = &header.idempotency_key {
+            self.keys.lock().stored(key.clone(), id);
+        }
         self.next_id.fetch_max(id.saturating_add(1), Relaxed);
         self.bytes.fetch_add((8 + record.len()) as u64, Relaxed);
         Ok(())

@@ -1,6 +1,7 @@
 //! The sled backend: sessions, frames and records in this node's sled database, acknowledged by
 //! its group commit.
 use super::cluster_jobs::LoggedJob;
+use super::keys::KeyGuard;
 use super::loops::{KeptLoops, LoopRecord, Verdict};
 use super::operations::Operations;
 use super::owners::{ClusterView, Membership};
@@ -52,6 +53,7 @@ impl Operations for Sled {
         s: &Arc<Session>,
         prepared: Vec<NewFrame>,
         loops: KeptLoops,
+        key: Option<KeyGuard>,
     ) -> Result<Vec<u64>, StoreError> {
         let written = store.note(Store::write_frames(s, &prepared));
         let (written, added_bytes) = written?;
@@ -70,6 +72,17 @@ impl Operations for Sled {
                 for (f, &id) in prepared.iter().zip(&ids) {
                     index.push(id, &f.robot_id, f.timestamp, f.pose, &f.descriptor);
                 }
+                drop(index);
+                let mut keys = session.keys.lock();
+                for (f, &id) in prepared.iter().zip(&ids) {
+                    if let Some(k) = &f.idempotency_key {
+                        keys.stored(k.clone(), id);
+                    }
+                }
+                drop(keys);
+                // The key goes once its frame is searchable (here) or known not stored (below),
+                // even when the request waiting for it was dropped.
+                drop(key);
                 session.bytes.fetch_add(added_bytes, Relaxed);
             }
             Err(_) => {
@@ -78,6 +91,7 @@ impl Operations for Sled {
                 for &id in &ids {
                     let _ = session.remove(id);
                 }
+                drop(key);
             }
         });
         let flushed = store.disk()?.commit.durable_then(Some(publish));

@@ -13,6 +13,9 @@ pub enum StoreError {
     SessionExists(String),
     #[error("frame {1} already exists in session '{0}'")]
     FrameExists(String, u64),
+    /// An idempotency key sent again with another frame.
+    #[error("{0}")]
+    KeyReused(String),
     #[error("{0}")]
     LoopNotFound(String),
     #[error("{0}")]

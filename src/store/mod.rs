@@ -8,6 +8,7 @@ pub mod durability;
 mod embedded;
 pub mod health;
 mod indexer;
+pub mod keys;
 pub mod loops;
 mod operations;
 mod owners;
@@ -63,6 +64,9 @@ pub struct NewFrame {
     pub features: Option<Vec<u8>>,
     /// A small picture of the frame for people (sessions with thumbnails on); kept like features.
     pub thumbnail: Option<Vec<u8>>,
+    /// The client's idempotency key: a write that repeats a stored frame's key stores nothing
+    /// and answers that frame's id (`keys.rs`).
+    pub idempotency_key: Option<String>,
 }
 
 /// A session to create: everything of its metadata but the id and the creation time.
@@ -122,6 +126,8 @@ pub struct Session {
     used: AtomicU64,
     /// Where its approximate index is saved, and how much of it was last (`indexer.rs`).
     graph_file: parking_lot::Mutex<indexer::GraphFile>,
+    /// Idempotency keys of its frames, and of writes in flight (`keys.rs`).
+    keys: parking_lot::Mutex<keys::Keys>,
 }
 
 pub struct Store {
@@ -146,8 +152,10 @@ fn not_durable(e: String) -> StoreError {
     StoreError::Unavailable(format!("storage failed ({e}); not stored, retry later"))
 }
 
+/// A session's local trees are closed: the store reopens after a storage failure, or (cluster)
+/// the session's copy here is being replaced, e.g. after the primary changed.
 fn reopening() -> StoreError {
-    StoreError::Unavailable("the store is being reopened after a storage failure (retry later)".into())
+    StoreError::Unavailable("this node's copy of the session is being reopened or reloaded; retry later".into())
 }
 
 fn session_tree_name(id: &str) -> String {
@@ -339,7 +347,12 @@ impl Store {
             normalize(&mut f.descriptor)?;
             prepared.push(f);
         }
-        dispatch!(async self, add_frames(self, s, prepared, loops))
+        let held = match s.claim_key(&prepared)? {
+            keys::Claim::Stored(id) => return Ok(vec![id]),
+            keys::Claim::Held(guard) => Some(guard),
+            keys::Claim::Unkeyed => None,
+        };
+        dispatch!(async self, add_frames(self, s, prepared, loops, held))
     }
 
     /// Inserts the frames (all or none) and returns their ids and bytes; not yet durable.

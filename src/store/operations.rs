@@ -4,6 +4,7 @@
 //! differs is where a write is acknowledged (sled's group commit, or the log's synchronous
 //! standby) and whether a read first catches up with other nodes.
 use super::cluster_jobs::LoggedJob;
+use super::keys::KeyGuard;
 use super::loops::{KeptLoops, LoopRecord, Verdict};
 use super::owners::{ClusterView, Membership};
 use super::record::SessionMeta;
@@ -28,6 +29,7 @@ pub(super) trait Operations {
         s: &Arc<Session>,
         frames: Vec<NewFrame>,
         loops: KeptLoops,
+        key: Option<KeyGuard>,
     ) -> Result<Vec<u64>, StoreError>;
 
     async fn keep_loops(&self, store: &Store, s: &Arc<Session>, loops: Vec<LoopRecord>) -> Result<(), StoreError>;

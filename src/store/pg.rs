@@ -72,7 +72,9 @@ CREATE TABLE IF NOT EXISTS loopd_tenants (name text PRIMARY KEY, record jsonb NO
 CREATE TABLE IF NOT EXISTS loopd_members (node text PRIMARY KEY, seen timestamptz NOT NULL, since timestamptz NOT NULL);
 CREATE TABLE IF NOT EXISTS loopd_jobs (id text PRIMARY KEY, n bigint NOT NULL, node text NOT NULL, record jsonb NOT NULL, \
     updated timestamptz NOT NULL DEFAULT now());
-CREATE SEQUENCE IF NOT EXISTS loopd_job_numbers";
+CREATE SEQUENCE IF NOT EXISTS loopd_job_numbers;
+CREATE TABLE IF NOT EXISTS loopd_frame_keys (tbl bigint NOT NULL, key text NOT NULL, frame_id bigint NOT NULL, \
+    robot_id text NOT NULL, stamp double precision NOT NULL, PRIMARY KEY (tbl, key))";
 
 fn loop_record(v: serde_json::Value) -> Result<LoopRecord, StoreError> {
     serde_json::from_value(v).map_err(|e| StoreError::Storage(format!("loop record: {e}")))
@@ -118,6 +120,7 @@ impl PgLog {
             deadline,
             primary: Default::default(),
             epoch: AtomicU64::new(0),
+            timeline: Default::default(),
             unreplicated: Default::default(),
         };
         let log = Self { db: Arc::new(db), writers: Default::default() };
@@ -223,7 +226,11 @@ impl PgLog {
                 let row = tx.query_opt("DELETE FROM loopd_sessions WHERE id = $1 RETURNING tbl", &[&session]).await;
                 let tbl: i64 =
                     row.map_err(pg_error)?.ok_or_else(|| StoreError::SessionNotFound(session.into()))?.get(0);
-                let drop = format!("DROP TABLE {}, {}", frames_table(tbl), loops_table(tbl));
+                let drop = format!(
+                    "DROP TABLE {}, {}; DELETE FROM loopd_frame_keys WHERE tbl = {tbl}",
+                    frames_table(tbl),
+                    loops_table(tbl)
+                );
                 tx.batch_execute(&drop).await.map_err(pg_error)?;
                 tx.commit().await.map_err(pg_error)?;
                 held.release();
@@ -289,7 +296,7 @@ impl PgLog {
         loops: Vec<(usize, LoopRecord)>,
     ) -> Result<Appended, StoreError> {
         if frames.is_empty() {
-            return Ok(Appended { ids: Vec::new(), version: self.version(&meta.id).await? });
+            return Ok(Appended { ids: Vec::new(), version: self.version(&meta.id).await?, replayed: false });
         }
         if loops.iter().any(|(i, _)| *i >= frames.len()) {
             return Err(StoreError::InvalidArgument("a kept loop names no frame of the batch".into()));

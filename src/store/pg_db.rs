@@ -5,7 +5,7 @@
 use super::loops::LoopRecord;
 use super::StoreError;
 use deadpool_postgres::{Object, Pool};
-use std::sync::atomic::{AtomicU64, Ordering::SeqCst};
+use std::sync::atomic::{AtomicI64, AtomicU64, Ordering::SeqCst};
 use tokio_postgres::error::SqlState;
 
 /// Whether the server must make each commit wait for a synchronous standby.
@@ -49,6 +49,10 @@ pub(super) struct Db {
     pub(super) epoch: AtomicU64,
     /// Why writes are refused now: the primary does not wait for a synchronous standby.
     pub(super) unreplicated: parking_lot::Mutex<Option<Unreplicated>>,
+    /// The newest timeline a primary answered with here. A primary on an older one was replaced
+    /// by a promotion (an old primary cut off, or started again, still taking writes): this
+    /// node neither reads nor writes through it (fencing, issue #34).
+    pub(super) timeline: AtomicI64,
 }
 
 /// Why the primary is not writable for loopd, and whether waiting can change it (a standby
@@ -64,6 +68,9 @@ pub(super) struct Unreplicated {
 pub struct Appended {
     pub ids: Vec<u64>,
     pub version: i64,
+    /// Nothing was stored: the batch's idempotency key names a frame an earlier write stored
+    /// (`ids` is that frame; `version` is at least the one it was committed in).
+    pub replayed: bool,
 }
 
 /// Transient: the database cannot be reached or is switching primaries; retry later. A commit
@@ -134,12 +141,25 @@ impl Db {
                    current_setting('synchronous_standby_names'), pg_is_in_recovery(), \
                    (SELECT count(*) FROM pg_stat_replication \
                     WHERE state = 'streaming' AND sync_state IN ('sync', 'quorum')), \
-                   pg_has_role(current_user, 'pg_read_all_stats', 'USAGE')";
+                   pg_has_role(current_user, 'pg_read_all_stats', 'USAGE'), \
+                   CASE WHEN pg_is_in_recovery() THEN 0 \
+                   ELSE ('x' || substr(pg_walfile_name(pg_current_wal_lsn()), 1, 8))::bit(32)::int END";
         let row = client.query_one(sql, &[]).await.map_err(pg_error)?;
         let (primary, commit, standbys, recovering, streaming, sees): (String, String, String, bool, i64, bool) =
             (row.get(0), row.get(1), row.get(2), row.get(3), row.get(4), row.get(5));
         if recovering {
             return Err(StoreError::Unavailable(format!("{primary} is a standby, not the primary; retry later")));
+        }
+        // Its timeline (the first 8 hex digits of its current WAL file's name): a promotion
+        // starts a new one, so an older one than seen before is a primary since replaced.
+        let timeline = i64::from(row.get::<_, i32>(6));
+        let newest = self.timeline.fetch_max(timeline, SeqCst).max(timeline);
+        if timeline < newest {
+            tracing::warn!(%primary, timeline, newest, "refused a replaced primary (an older timeline than seen before)");
+            return Err(StoreError::Unavailable(format!(
+                "{primary} is on timeline {timeline}, older than timeline {newest} seen before: a primary that was \
+                 replaced (cut off from the cluster or started again), not used; retry later"
+            )));
         }
         let configured =
             !standbys.trim().is_empty() && matches!(commit.as_str(), "on" | "remote_write" | "remote_apply");

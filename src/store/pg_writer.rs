@@ -3,10 +3,11 @@
 //! savepoint, within the log's deadline (`LogConfig::deadline`).
 use super::loops::LoopRecord;
 use super::pg_db::{frames_table, loop_row, loops_table, pg_error, Appended, Db};
-use super::record::{encode_frame, FrameHeader};
+use super::record::encode_frame;
 use super::{NewFrame, StoreError};
 use crate::index::Storage;
 use deadpool_postgres::Object;
+use std::collections::HashMap;
 use std::sync::Arc;
 use tokio_postgres::error::SqlState;
 use tokio_postgres::types::ToSql;
@@ -18,6 +19,11 @@ pub(super) struct Request {
     pub(super) loops: Vec<(usize, LoopRecord)>,
     pub(super) storage: Storage,
     pub(super) done: tokio::sync::oneshot::Sender<Result<Appended, StoreError>>,
+}
+
+/// The frame of a request that carries an idempotency key, and the key.
+fn keyed(r: &Request) -> Option<(&NewFrame, &str)> {
+    r.frames.iter().find_map(|f| f.idempotency_key.as_deref().map(|k| (f, k)))
 }
 
 /// Frames one transaction takes at most (requests beyond wait for the next one).
@@ -98,10 +104,36 @@ async fn commit_on(
     let insert = tx.prepare(&sql).await.map_err(pg_error)?;
     let sql = format!("INSERT INTO {} (query_frame, match_frame, record) VALUES ($1, $2, $3)", loops_table(tbl));
     let insert_loop = tx.prepare(&sql).await.map_err(pg_error)?;
+    // Idempotency keys (`keys.rs`), looked up under the session row's lock: a write sent again
+    // through any node, or after a commit whose answer was lost, finds the first one.
+    let group_keys: Vec<&str> = group.iter().filter_map(|r| keyed(r).map(|(_, k)| k)).collect();
+    let mut known: HashMap<String, (i64, String, f64)> = HashMap::new();
+    let insert_key = match group_keys.is_empty() {
+        true => None,
+        false => {
+            let sql = "SELECT key, frame_id, robot_id, stamp FROM loopd_frame_keys WHERE tbl = $1 AND key = ANY($2)";
+            for row in tx.query(sql, &[&tbl, &group_keys]).await.map_err(pg_error)? {
+                known.insert(row.get(0), (row.get(1), row.get(2), row.get(3)));
+            }
+            let sql = "INSERT INTO loopd_frame_keys (tbl, key, frame_id, robot_id, stamp) VALUES ($1, $2, $3, $4, $5)";
+            Some(tx.prepare(sql).await.map_err(pg_error)?)
+        }
+    };
     let write_id: i64 = rand::random();
     let mut answers = Vec::with_capacity(group.len());
     for r in group {
         let (version_before, next_before) = (version, next);
+        let key = keyed(r);
+        if let Some((f, key)) = key {
+            if let Some((id, robot, stamp)) = known.get(key) {
+                // Stored before (or earlier in this transaction): its id, nothing stored.
+                answers.push(match *robot == f.robot_id && stamp.to_bits() == f.timestamp.to_bits() {
+                    true => Ok(Appended { ids: vec![*id as u64], version, replayed: true }),
+                    false => Err(super::keys::reused(key, *id as u64, robot, *stamp, f)),
+                });
+                continue;
+            }
+        }
         tx.batch_execute("SAVEPOINT request").await.map_err(pg_error)?;
         // Rows first (ids, seqs, records), then their INSERTs pipelined on the connection.
         let mut rows = Vec::with_capacity(r.frames.len());
@@ -113,12 +145,7 @@ async fn commit_on(
             };
             next = next.max(id.saturating_add(1));
             version += 1;
-            let header = FrameHeader {
-                robot_id: f.robot_id.clone(),
-                timestamp: f.timestamp,
-                pose: f.pose,
-                metadata: f.metadata.clone(),
-            };
+            let header = f.header();
             rows.push((id, version, encode_frame(&header, &f.descriptor, r.storage), f));
         }
         let mut ids = Vec::with_capacity(rows.len());
@@ -142,6 +169,11 @@ async fn commit_on(
                 }
             }
         }
+        if let (None, Some((f, key)), Some(insert_key), Some(&id)) = (&refused, key, &insert_key, ids.first()) {
+            let id = id as i64;
+            tx.execute(insert_key, &[&tbl, &key, &id, &f.robot_id, &f.timestamp]).await.map_err(pg_error)?;
+            known.insert(key.to_string(), (id, f.robot_id.clone(), f.timestamp));
+        }
         if refused.is_none() && !r.loops.is_empty() {
             // The loops answered for these frames, in the same savepoint: kept exactly when they are.
             let rows = r.loops.iter().map(|(at, l)| loop_row(ids[*at], l)).collect::<Result<Vec<_>, _>>()?;
@@ -161,7 +193,7 @@ async fn commit_on(
             }
             None => {
                 tx.batch_execute("RELEASE SAVEPOINT request").await.map_err(pg_error)?;
-                answers.push(Ok(Appended { ids, version }));
+                answers.push(Ok(Appended { ids, version, replayed: false }));
             }
         }
     }

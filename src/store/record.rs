@@ -48,6 +48,9 @@ pub struct FrameHeader {
     pub pose: Option<Pose>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub metadata: Option<serde_json::Value>,
+    /// The client's idempotency key of the write that stored it (`keys.rs`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub idempotency_key: Option<String>,
 }
 
 use crate::index::Storage;

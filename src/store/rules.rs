@@ -72,6 +72,7 @@ impl NewFrame {
             timestamp: self.timestamp,
             pose: self.pose,
             metadata: self.metadata.clone(),
+            idempotency_key: self.idempotency_key.clone(),
         }
     }
 }

@@ -131,11 +131,15 @@ impl Session {
         }
         index.set_index(meta.index, search.graph);
         let mut bytes = 0u64;
+        let mut keys = super::keys::Keys::default();
         for entry in trees.frames.iter() {
             let (k, v) = entry?;
             let id = key_frame(&k).ok_or_else(|| StoreError::Storage("bad frame key".into()))?;
             let (h, d) = decode_frame(&v).map_err(StoreError::Storage)?;
             index.push(id, &h.robot_id, h.timestamp, h.pose, &d);
+            if let Some(key) = h.idempotency_key {
+                keys.stored(key, id);
+            }
             bytes += (k.len() + v.len()) as u64;
         }
         let next = index.max_frame_id().map_or(0, |m| m.saturating_add(1));
@@ -151,6 +155,7 @@ impl Session {
             epoch: 0,
             used: AtomicU64::new(owners::now_ms()),
             graph_file: parking_lot::Mutex::new(graph_file),
+            keys: parking_lot::Mutex::new(keys),
         })
     }
 

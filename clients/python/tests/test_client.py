@@ -172,3 +172,24 @@ def test_index_kind_on_create_and_the_approximate_index_catches_up(server):
             found = [[m.frame_id for m in c.query(name, "visitor", image=img, options=query_options(k=3, verify=False))]
                      for name in kinds]
             assert found[0] == found[1]
+
+
+def test_a_frame_the_client_sends_again_is_stored_once(server):
+    """A frame with a server-assigned id carries a key of the client's own: the same request sent
+    again (as the client's retries send it, after a timeout or an UNAVAILABLE) answers the first
+    frame's id and stores nothing; the next frame gets a key of its own."""
+    key = server.tenant("retrying")
+    with Client(server.grpc, key=key, ca=server.ca) as c:
+        c.create_session("twice", exist_ok=True)
+        images = corridor("ref", 2)
+        request = c.frame_request("twice", "r", Frame(image=images[0], timestamp=1.0), query_options(verify=False))
+        assert len(request.idempotency_key) == 32, request.idempotency_key
+        first = c._write(c._stub.AddAndQuery, request)
+        again = c._write(c._stub.AddAndQuery, request)
+        assert again.frame_id == first.frame_id
+        assert c.get_session("twice").frames == 1
+        second = c.add_frame("twice", "r", Frame(image=images[1], timestamp=2.0))
+        assert second != first.frame_id and c.get_session("twice").frames == 2
+        # A key the caller gives is sent as it is.
+        mine = c.frame_request("twice", "r", Frame(image=images[0], timestamp=3.0, idempotency_key="robot-r/3"))
+        assert mine.idempotency_key == "robot-r/3"

@@ -170,6 +170,7 @@ fn frame_input(r: pb::AddFrameRequest) -> Result<(String, FrameInput, QueryOverr
         metadata,
         content,
         thumbnail: None,
+        idempotency_key: (!r.idempotency_key.is_empty()).then_some(r.idempotency_key),
     };
     Ok((r.session_id, f, opts))
 }

@@ -94,6 +94,8 @@ pub struct FrameForm {
     metadata: Option<String>,
     /// QueryOptions as JSON text.
     options: Option<String>,
+    /// A write's idempotency key.
+    idempotency_key: Option<String>,
 }
 
 /// A frame's fields in the query string when its body is the raw image.
@@ -107,6 +109,8 @@ pub struct RawFrameFields {
     timestamp: Option<f64>,
     /// Raw-body form only; unset: assigned (a query: the stored frame to query with).
     frame_id: Option<u64>,
+    /// Raw-body form only: a write's idempotency key.
+    idempotency_key: Option<String>,
 }
 
 /// A sequence job's options, as form fields or in the query string: any field of the query

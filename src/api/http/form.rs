@@ -32,6 +32,9 @@ pub struct FrameFields {
     pub metadata: Option<serde_json::Value>,
     pub descriptor: Option<Vec<f32>>,
     pub options: Option<QueryOverrides>,
+    /// A write's idempotency key (1-128 visible ASCII characters): sent again with it, the
+    /// write stores nothing and answers the first write's frame id.
+    pub idempotency_key: Option<String>,
     #[serde(skip)]
     pub image: Option<Bytes>,
 }
@@ -41,7 +44,7 @@ fn fields_from_text(map: HashMap<String, String>, image: Option<Bytes>) -> Resul
     let mut obj = serde_json::Map::new();
     for (k, v) in map {
         let value = match k.as_str() {
-            "robot_id" => serde_json::Value::String(v),
+            "robot_id" | "idempotency_key" => serde_json::Value::String(v),
             "timestamp" | "frame_id" | "pose" | "metadata" | "descriptor" | "options" => serde_json::from_str(&v)
                 .map_err(|e| ApiError::InvalidArgument(format!("field {k}: not valid JSON/number ({e})")))?,
             other => return Err(ApiError::InvalidArgument(format!("unknown field '{other}'"))),
@@ -148,6 +151,7 @@ pub fn frame_input(mut f: FrameFields) -> Result<(FrameInput, QueryOverrides), A
         metadata: f.metadata,
         content,
         thumbnail: None,
+        idempotency_key: f.idempotency_key,
     };
     Ok((input, f.options.unwrap_or_default()))
 }

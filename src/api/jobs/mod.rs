@@ -247,6 +247,7 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
             metadata: Some(serde_json::json!({ "name": name, "index": i })),
             content: Content::Embedded { descriptor, features },
             thumbnail,
+            idempotency_key: None,
         };
         // Looked up for each frame: a session deleted while its job runs ends the job.
         let answer = match service.store.session(&session) {

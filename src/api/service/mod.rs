@@ -185,6 +185,9 @@ pub struct FrameInput {
     /// A thumbnail made ahead (sequence jobs embed ahead, so their frames come as descriptors);
     /// None: made here from the image when the session keeps thumbnails.
     pub thumbnail: Option<Vec<u8>>,
+    /// The client's idempotency key: a write sent again with it stores nothing and answers
+    /// the first write's frame id (`store::keys`).
+    pub idempotency_key: Option<String>,
 }
 
 impl FrameInput {
@@ -197,6 +200,9 @@ impl FrameInput {
         }
         if self.frame_id.is_some_and(|id| id > MAX_CLIENT_FRAME_ID) {
             return Err(ApiError::InvalidArgument(format!("frame_id must be at most {MAX_CLIENT_FRAME_ID}")));
+        }
+        if let Some(key) = &self.idempotency_key {
+            crate::store::keys::check_key(key)?;
         }
         if self.metadata.as_ref().is_some_and(|m| !m.is_object()) {
             return Err(ApiError::InvalidArgument("metadata must be a JSON object".into()));
@@ -231,6 +237,7 @@ impl FrameInput {
                 QueryFeatures::None(_) => None,
             },
             thumbnail: self.thumbnail.or(prepared.thumbnail),
+            idempotency_key: self.idempotency_key,
         }
     }
 }

@@ -166,6 +166,10 @@ impl LoopService {
         let mut q = options.apply(&s.meta.default_query);
         q.robot_id = Some(f.robot_id.clone());
         q.at_time = Some(t);
+        // A retry of a write already stored: answered as the first write was, without itself.
+        if let Some(id) = f.idempotency_key.as_deref().and_then(|k| s.frame_of_key(k)) {
+            q.exclude_frame = Some(id);
+        }
         q.validate().map_err(ApiError::from)?;
         self.check_confidence(s, &q)?;
         let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));

@@ -2,6 +2,7 @@ mod approx;
 mod confidence;
 mod inspect;
 mod jobs;
+mod keys;
 mod loops;
 mod openapi;
 mod server;

@@ -9,7 +9,8 @@
 //! local commit and shows it, so node B reads the frame and answers with it. The primary then dies
 //! and the standby, which never had the frame, is promoted. Asserted: the write is never
 //! acknowledged; B and A then answer without the frame and hold exactly the acknowledged ones;
-//! and writes are refused while the new primary has no synchronous standby.
+//! and writes are refused while the new primary has no synchronous standby. Then the old primary
+//! starts again, writable on its old timeline: the nodes refuse it rather than serve its frames.
 use crate::common::pg::{env, pg_ctl, psql};
 use crate::common::{data, imagenet_model};
 use loopd::api::server::{ClusterConfig, RunningServer, ServerConfig};
@@ -152,4 +153,31 @@ async fn after_a_failover_no_node_serves_a_frame_the_new_primary_lacks() {
     let refused = ga.add_frame(frame(6.0, &descriptors[5], 6)).await.map(|_| ()).unwrap_err();
     assert_eq!(refused.code(), Code::Unavailable);
     assert!(refused.message().contains("synchronous standby"), "{}", refused.message());
+
+    // Fencing (issue #34): the old primary starts again, writable on its old timeline and still
+    // holding frame 777, first in the nodes' URL. Their connections to the new primary are cut,
+    // so their next ones reach the old primary: each node refuses it (a timeline older than it
+    // has seen) instead of taking it as a primary change and serving frame 777 again.
+    pg_ctl(&primary, &["start", "-l", &format!("{primary}.log")]);
+    let new_primary = format!("postgres://postgres@127.0.0.1:{}/loopd", env("LOOPD_PG_STANDBY_PORT"));
+    let cut = "SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity \
+               WHERE backend_type = 'client backend' AND pid <> pg_backend_pid()";
+    let out = std::process::Command::new("psql").args([&new_primary, "-tAc", cut]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let t = Instant::now();
+    while t.elapsed() < Duration::from_secs(5) {
+        for (name, g) in [("B", &mut gb), ("A", &mut ga)] {
+            match answer(g, &descriptors[5]).await {
+                Ok((ids, _)) => assert!(!ids.contains(&777), "{name} took the old primary: it serves frame 777"),
+                Err(Code::Unavailable) => {}
+                Err(code) => panic!("{name}: {code:?}"),
+            }
+        }
+        match ga.add_frame(frame(7.0, &descriptors[5], 7)).await {
+            Err(e) if e.code() == Code::Unavailable => {}
+            other => panic!("a write with the old primary back answered {other:?}"),
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    pg_ctl(&primary, &["stop", "-m", "fast"]);
 }

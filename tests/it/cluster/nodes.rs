@@ -279,6 +279,39 @@ async fn any_node_serves_any_session_and_sees_every_acknowledged_frame() {
     }
 }
 
+/// Issue #34, item 3, through real servers: a frame sent with an idempotency key through one
+/// node and sent again through the other (a client that failed over) is stored once, and both
+/// answers name the same frame; the second node holds it after the replay.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn a_frame_sent_again_with_its_key_through_another_node_is_stored_once() {
+    let dirs: Vec<_> = (0..2).map(|_| tempfile::tempdir().unwrap()).collect();
+    let (a, b) = (node(dirs[0].path(), true).await, node(dirs[1].path(), true).await);
+    let (mut ga, mut gb) = (client(&a).await, client(&b).await);
+    create(&mut ga, "keyed-nodes", false).await;
+    let d = corridor_descriptors(&a, 3).await;
+    let keyed = |i: usize, key: &str| pb::AddFrameRequest {
+        idempotency_key: key.into(),
+        ..descriptor_frame("keyed-nodes", "r1", i as f64, &d[i], None)
+    };
+    let mut ids = Vec::new();
+    for i in 0..3 {
+        let key = format!("r1-{i}");
+        let first = ga.add_and_query(keyed(i, &key)).await.unwrap().into_inner();
+        let again = gb.add_and_query(keyed(i, &key)).await.unwrap().into_inner();
+        assert_eq!(first.frame_id, again.frame_id, "frame {i} through the other node");
+        assert!(again.matches.iter().all(|m| m.frame_id != first.frame_id), "the replay matched itself");
+        ids.push(first.frame_id);
+    }
+    // And back through the first node, with the second node's answer lost.
+    let again = ga.add_frame(keyed(1, "r1-1")).await.unwrap().into_inner();
+    assert_eq!(again.frame_id, ids[1]);
+    assert_eq!((frames_in(&mut ga, "keyed-nodes").await, frames_in(&mut gb, "keyed-nodes").await), (Ok(3), Ok(3)));
+    let reused = gb.add_frame(keyed(2, "r1-0")).await.unwrap_err();
+    assert_eq!(reused.code(), Code::AlreadyExists, "{reused:?}");
+    ga.delete_session(pb::DeleteSessionRequest { id: "keyed-nodes".into() }).await.unwrap();
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 #[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
 async fn without_a_primary_writes_are_refused_and_queries_go_on() {

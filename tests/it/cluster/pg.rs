@@ -46,6 +46,7 @@ fn frame(i: usize, id: Option<u64>) -> NewFrame {
         descriptor,
         features: None,
         thumbnail: None,
+        idempotency_key: None,
     }
 }
 
@@ -116,7 +117,7 @@ async fn frames_are_acknowledged_after_the_standby_has_them_in_commit_order() {
     log.create_session(&m).await.unwrap();
     assert_eq!(
         log.append(&m, &[frame(0, None)]).await.unwrap(),
-        loopd::store::pg::Appended { ids: vec![0], version: 1 }
+        loopd::store::pg::Appended { ids: vec![0], version: 1, replayed: false }
     );
     log.delete_session("hall").await.unwrap();
 }
@@ -285,4 +286,60 @@ async fn a_write_past_the_deadline_is_unavailable_and_a_gone_standby_refuses_wri
         Ok(()) | Err(StoreError::SessionNotFound(_)) => {}
         other => panic!("the abandoned creation left {other:?}"),
     }
+}
+
+/// Issue #34, item 3: a write with a server-assigned id whose commit timed out while no standby
+/// confirmed it is committed once a standby is back; its retry with the same idempotency key
+/// answers that frame and stores nothing, through this log or another node's. A key sent with
+/// another frame is refused, and a deleted session takes its keys with it.
+#[tokio::test]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn a_keyed_write_retried_after_its_commit_timed_out_is_stored_once() {
+    let deadline = Duration::from_secs(2);
+    let config = LogConfig { deadline, ..LogConfig::new(2, Replication::Synchronous) };
+    let log = PgLog::connect(&env("LOOPD_PG_URL"), config).await.expect("connect");
+    let other = self::log().await; // another node's connections to the same log
+    let m = meta("keyed");
+    log.create_session(&m).await.unwrap();
+    let keyed = |i: usize, key: &str| NewFrame { idempotency_key: Some(key.into()), ..frame(i, None) };
+    let first = log.append(&m, &[keyed(0, "robot-a/0")]).await.unwrap();
+    assert_eq!((first.ids.as_slice(), first.version, first.replayed), ([0].as_slice(), 1, false));
+    for l in [&log, &other] {
+        let again = l.append(&m, &[keyed(0, "robot-a/0")]).await.unwrap();
+        assert_eq!((again.ids.as_slice(), again.replayed), ([0].as_slice(), true), "sent again");
+    }
+    match log.append(&m, &[keyed(1, "robot-a/0")]).await {
+        Err(StoreError::KeyReused(why)) => assert!(why.contains("robot-a/0") && why.contains("frame 0"), "{why}"),
+        other => panic!("a key sent with another frame answered {other:?}"),
+    }
+    // Sent twice at once (one transaction or two): one frame, both answered its id.
+    let twice = [keyed(2, "robot-a/2")];
+    let (x, y) = tokio::join!(log.append(&m, &twice), other.append(&m, &twice));
+    let (x, y) = (x.unwrap(), y.unwrap());
+    assert_eq!(x.ids, y.ids);
+    assert!(x.replayed != y.replayed, "one of the two stored it: {x:?} {y:?}");
+
+    // The issue's case: the commit's answer is lost (no standby), the commit is not.
+    server("LOOPD_PG_STANDBY", "stop");
+    let late = log.append(&m, &[keyed(3, "robot-a/3")]).await;
+    server("LOOPD_PG_STANDBY", "start");
+    assert!(matches!(late, Err(StoreError::Unavailable(_))), "a commit with no standby answered {late:?}");
+    let back = std::time::Instant::now();
+    while log.probe().await.is_err() {
+        assert!(back.elapsed() < Duration::from_secs(60), "the standby streams again within 60 s");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let retry = other.append(&m, &[keyed(3, "robot-a/3")]).await.unwrap();
+    let times: Vec<f64> = log.frames("keyed", 0).await.unwrap().iter().map(|f| f.header.timestamp).collect();
+    assert_eq!(times, [0.0, 2.0, 3.0], "each frame once (the retry answered {retry:?})");
+    let stored = log.frames("keyed", 0).await.unwrap();
+    assert_eq!(retry.ids, [stored[2].frame_id], "the retry answers the stored frame");
+    assert_eq!(stored[2].header.idempotency_key.as_deref(), Some("robot-a/3"), "the key is in the record");
+
+    log.delete_session("keyed").await.unwrap();
+    assert_eq!(psql("SELECT count(*) FROM loopd_frame_keys"), "0", "keys go with their session");
+    log.create_session(&m).await.unwrap();
+    let anew = log.append(&m, &[keyed(5, "robot-a/0")]).await.unwrap();
+    assert!(!anew.replayed, "a key of a deleted session is free again");
+    log.delete_session("keyed").await.unwrap();
 }

@@ -48,6 +48,7 @@ fn health_checks_answer_while_large_searches_run() {
                     descriptor: descriptors[i % descriptors.len()].clone(),
                     features: None,
                     thumbnail: None,
+                    idempotency_key: None,
                 })
                 .collect();
             svc.store.add_frames(&s, frames).await.unwrap();

@@ -62,6 +62,7 @@ fn frame(id: Option<u64>, robot: &str, t: f64, d: &[f32]) -> NewFrame {
         descriptor: d.to_vec(),
         features: None,
         thumbnail: None,
+        idempotency_key: None,
     }
 }
 

@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import pathlib
 import time
+import uuid
 from typing import Iterable, Iterator, List, Optional, Sequence, Tuple, Union
 
 import grpc
 
 from ._gen.loopd.v1 import loopd_pb2 as pb
 from ._gen.loopd.v1 import loopd_pb2_grpc as rpc
-from .retry import RetryPolicy, retrying
+from .retry import RETRYABLE_WRITE, RetryPolicy, retrying
 from .stream import Answer, Frame, ResumableStream
 
 PemSource = Union[bytes, str, pathlib.Path, None]
@@ -138,6 +139,12 @@ class Client:
             metadata_json=frame.metadata_json, options=options)
         if frame.frame_id is not None:
             request.frame_id = frame.frame_id
+        if frame.idempotency_key is not None:
+            request.idempotency_key = frame.idempotency_key
+        elif frame.frame_id is None:
+            # A server-assigned id: a key of its own makes every retry of this request (the same
+            # request object is sent again) store the frame once.
+            request.idempotency_key = uuid.uuid4().hex
         if frame.pose is not None:
             request.pose.CopyFrom(frame.pose)
         if frame.image is not None:
@@ -149,8 +156,9 @@ class Client:
         return request
 
     def _write(self, method, request: pb.AddFrameRequest):
-        """A write, retried; with a frame id an ALREADY_EXISTS after a retry means an earlier
-        attempt was stored (exactly once), so it is answered as success."""
+        """A write, retried (after its deadline too: it carries a frame id or an idempotency key);
+        with a frame id an ALREADY_EXISTS after a retry means an earlier attempt was stored
+        (exactly once), so it is answered as success."""
         attempts = 0
 
         def attempt():
@@ -159,7 +167,7 @@ class Client:
             return method(request, metadata=self._metadata, timeout=self.timeout)
 
         try:
-            return retrying(self.retry, attempt, self._count_retry)
+            return retrying(self.retry, attempt, self._count_retry, RETRYABLE_WRITE)
         except grpc.RpcError as e:
             if attempts > 1 and request.HasField("frame_id") and e.code() == grpc.StatusCode.ALREADY_EXISTS:
                 return None

@@ -13,6 +13,9 @@ T = TypeVar("T")
 # The server says "not now" with these: a restart or a storage fault (UNAVAILABLE), a full queue
 # or a tenant's rate limit (RESOURCE_EXHAUSTED). Everything else is an answer, not a hiccup.
 RETRYABLE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.RESOURCE_EXHAUSTED)
+# A write also after its deadline passed: it may have been stored, and its frame id or
+# idempotency key makes the retry answer that frame instead of storing it again.
+RETRYABLE_WRITE = RETRYABLE + (grpc.StatusCode.DEADLINE_EXCEEDED,)
 
 
 @dataclass
@@ -39,14 +42,15 @@ class RetryPolicy:
 NO_RETRY = RetryPolicy(deadline=0.0)
 
 
-def retrying(policy: RetryPolicy, call: Callable[[], T], on_retry: Callable[[grpc.RpcError], None]) -> T:
-    """`call()`, tried again after a backoff while it fails with a retryable status."""
+def retrying(policy: RetryPolicy, call: Callable[[], T], on_retry: Callable[[grpc.RpcError], None],
+             codes=RETRYABLE) -> T:
+    """`call()`, tried again after a backoff while it fails with a status in `codes`."""
     delays = policy.delays()
     while True:
         try:
             return call()
         except grpc.RpcError as e:
-            if e.code() not in RETRYABLE:
+            if e.code() not in codes:
                 raise
             delay = next(delays, None)
             if delay is None:

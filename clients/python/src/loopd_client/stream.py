@@ -19,8 +19,10 @@ ALREADY_EXISTS = grpc.StatusCode.ALREADY_EXISTS.value[0]
 @dataclass
 class Frame:
     """One keyframe: an encoded image (JPEG, PNG, ...) or a descriptor. Give `frame_id` (unique in
-    the session) for exactly-once delivery across reconnects; without it a frame that the server
-    stored but could not answer before a restart is stored again when it is re-sent."""
+    the session) for exactly-once delivery across retries and reconnects, or let the server assign
+    one: the client then sends a key of its own with the frame (a UUID, or `idempotency_key` when
+    given), and a frame sent again with the key of a stored frame is answered that frame's id and
+    stores nothing, on the embedded store and on a cluster, through any node."""
 
     image: Optional[bytes] = None
     descriptor: Optional[List[float]] = None
@@ -28,6 +30,7 @@ class Frame:
     frame_id: Optional[int] = None
     pose: Optional[pb.Pose] = None
     metadata_json: str = ""
+    idempotency_key: Optional[str] = None
 
 
 @dataclass
