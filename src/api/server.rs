@@ -35,6 +35,9 @@ pub struct ServerConfig {
     /// Largest HTTP body (sequence uploads are the big ones).
     pub max_body_bytes: usize,
     pub max_jobs: usize,
+    /// A keyed tenant's sequence jobs running at once at most (None: `max_jobs`); a tenant that
+    /// runs one never takes the last free slot either (`jobs::Jobs::admit`).
+    pub max_jobs_per_tenant: Option<usize>,
     /// Where loop searches run (host kernels or a libtorch device).
     pub search: SearchConfig,
     /// Local features kept per frame and the workers that extract and check them.
@@ -147,6 +150,7 @@ impl ServerConfig {
             limits: ImageLimits::default(),
             max_body_bytes: 8 << 20,
             max_jobs: 1,
+            max_jobs_per_tenant: None,
             search: SearchConfig::default(),
             verify: VerifyConfig::default(),
             calibration: Calibration::Shipped(SHIPPED.into()),
@@ -244,7 +248,7 @@ impl RunningServer {
             );
         }
         let service = LoopService::new(engine, store, cfg.verify.clone(), calibrator);
-        let jobs = Arc::new(super::jobs::Jobs::new(cfg.max_jobs, service.store.clone()));
+        let jobs = Arc::new(super::jobs::Jobs::new(cfg.max_jobs, cfg.max_jobs_per_tenant, service.store.clone()));
         let (shutdown, rx) = tokio::sync::watch::channel(false);
         if let Some(c) = &cfg.cluster {
             tokio::spawn(follow_cluster(auth.clone(), service.store.clone(), c.tenant_refresh, rx.clone()));

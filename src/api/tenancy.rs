@@ -73,7 +73,7 @@ impl Scoped<'_> {
     /// Counts frames a tenant stored.
     fn added(&self, frames: usize) {
         if let Some(q) = self.caller.quota() {
-            q.counters.frames_added.fetch_add(frames as u64, std::sync::atomic::Ordering::Relaxed);
+            q.added(frames);
         }
     }
 
@@ -196,9 +196,11 @@ impl Scoped<'_> {
 
     pub async fn start_sequence(&self, jobs: &Jobs, session: &str, seq: SequenceRequest) -> Result<String, ApiError> {
         let s = self.fresh(session).await?;
-        // A job runs after this returns: the slot checks the share at submission only.
+        // A job runs after this returns: the slot checks the share at submission only; the
+        // job's frames then wait for the tenant's rate, one token each, and are counted as its.
         drop(self.admit(seq.frames.len()).await?);
-        jobs.start_sequence(self.service, &s, seq).await
+        let tenant = self.caller.quota_arc().map(|q| (self.caller.tenant_name().to_string(), q.clone()));
+        jobs.start_sequence(self.service, &s, seq, tenant).await
     }
 
     /// A job of one of this tenant's sessions.

@@ -137,6 +137,32 @@ impl Quota {
         }
         Err(format!("request rate over the tenant's limit of {rate} per second"))
     }
+
+    /// One frame's token for work that waits instead of being refused (a sequence job's frames,
+    /// issue #35): returns once the tenant's bucket holds a token, and takes it. A tenant's jobs
+    /// and its live requests draw on the same bucket, so together they stay within its rate.
+    pub async fn pace(&self) {
+        let Some(rate) = self.limits.rate else { return };
+        loop {
+            let wait = {
+                let mut b = self.bucket.lock();
+                let now = Instant::now();
+                b.0 = (b.0 + now.duration_since(b.1).as_secs_f64() * rate).min(rate.max(1.0));
+                b.1 = now;
+                if b.0 >= 1.0 {
+                    b.0 -= 1.0;
+                    return;
+                }
+                (1.0 - b.0) / rate
+            };
+            tokio::time::sleep(std::time::Duration::from_secs_f64(wait.clamp(0.001, 60.0))).await;
+        }
+    }
+
+    /// Counts frames the tenant stored.
+    pub fn added(&self, frames: usize) {
+        self.counters.frames_added.fetch_add(frames as u64, Ordering::Relaxed);
+    }
 }
 
 #[cfg(test)]

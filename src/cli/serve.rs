@@ -34,6 +34,10 @@ pub struct ServeArgs {
     /// Longest a frame waits for others to join its batch.
     #[arg(long, env = "LOOPD_MAX_DELAY_MS", default_value_t = 5)]
     pub max_delay_ms: u64,
+    /// Pad batches to powers of two (and --max-batch), so the GPU meets few batch shapes, each
+    /// warmed up at start; auto: on a CUDA device only (docs/performance.md "GPU figures").
+    #[arg(long, env = "LOOPD_BATCH_BUCKETS", value_enum, default_value = "auto")]
+    pub batch_buckets: Switch,
     /// Frames admitted at once (decoding, queued, running); beyond it: RESOURCE_EXHAUSTED / 429.
     #[arg(long, env = "LOOPD_QUEUE_CAPACITY", default_value_t = 256)]
     pub queue_capacity: usize,
@@ -47,6 +51,10 @@ pub struct ServeArgs {
     /// Offline sequence jobs running at once.
     #[arg(long, env = "LOOPD_MAX_JOBS", default_value_t = 2)]
     pub max_jobs: usize,
+    /// A keyed tenant's sequence jobs running at once at most (default: --max-jobs). Whatever
+    /// it is, a tenant that runs a job never takes the last free slot: it is kept for another.
+    #[arg(long, env = "LOOPD_MAX_JOBS_PER_TENANT")]
+    pub max_jobs_per_tenant: Option<usize>,
     /// Threads decoding images at once (default: number of cores).
     #[arg(long, env = "LOOPD_DECODE_WORKERS")]
     pub decode_workers: Option<usize>,
@@ -219,6 +227,11 @@ impl ServeArgs {
                 queue_capacity: self.queue_capacity,
                 decode_workers: self.decode_workers.unwrap_or(defaults.decode_workers),
                 warm_up: true,
+                batch_buckets: match self.batch_buckets {
+                    Switch::Auto => None,
+                    Switch::On => Some(true),
+                    Switch::Off => Some(false),
+                },
             },
             limits: ImageLimits {
                 max_bytes: self.max_image_bytes,
@@ -228,6 +241,7 @@ impl ServeArgs {
             },
             max_body_bytes: self.max_body_bytes.max(self.max_image_bytes + (1 << 20)),
             max_jobs: self.max_jobs,
+            max_jobs_per_tenant: self.max_jobs_per_tenant,
             search: SearchConfig::default(),
             shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_secs.clamp(0.0, 3600.0)),
             storage_retry: Duration::from_secs_f64(self.storage_retry_secs.clamp(0.1, 3600.0)),
@@ -314,4 +328,12 @@ async fn wait_for_signal() {
     }
     #[cfg(not(unix))]
     let _ = ctrl_c.await;
+}
+
+/// On, off, or chosen by the device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Switch {
+    Auto,
+    On,
+    Off,
 }

@@ -80,6 +80,10 @@ pub struct TrainArgs {
     /// Light augmentation of labelled views as well (unlabelled ones are always augmented).
     #[arg(long)]
     pub augment: bool,
+    /// Mixed precision of the training forward pass: f16 or bf16 autocast (CUDA only; matrix
+    /// products and convolutions in half precision, the loss and the weights in f32). f32: none.
+    #[arg(long, value_enum, default_value = "f32")]
+    pub autocast: crate::model::device::DType,
     /// Multi-similarity margin (lambda).
     #[arg(long, default_value_t = 0.5)]
     pub margin: f64,
@@ -166,6 +170,8 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
     if a.whiten_dim.is_some_and(|d| d < 8 || d % 8 != 0) {
         bail!("--whiten-dim must be a positive multiple of 8 (the search kernels' lane width)");
     }
+    let device = parse_device(&a.model.device)?;
+    a.autocast.check(device).context("--autocast")?;
     let val = a.val.iter().map(|s| parse_val(s)).collect::<Result<Vec<_>>>()?;
     for v in &val {
         if !v.sequence.is_dir() {
@@ -186,7 +192,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
             }
             c
         },
-        device: parse_device(&a.model.device)?,
+        device,
         set,
         val,
         out: a.out.clone(),
@@ -204,6 +210,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
             train_layer4: a.train_backbone == TrainBackbone::Layer4,
             augment_labelled: a.augment,
             loss: MsParams { lambda: a.margin, ..Default::default() },
+            autocast: a.autocast,
         },
         whiten: a.whiten.then_some(WhitenSpec { dim: a.whiten_dim, frames: a.whiten_frames, shrink: a.whiten_shrink }),
         resume: a.resume,

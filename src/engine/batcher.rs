@@ -37,18 +37,28 @@ pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: s
             let (group, rest): (Vec<Job>, Vec<Job>) =
                 jobs.into_iter().partition(|j| j.input.size() == size && j.variant == variant);
             jobs = rest;
-            forward(&model, group, variant, &metrics);
+            let bucket_max = if cfg.batch_buckets == Some(true) { Some(cfg.max_batch) } else { None };
+            forward(&model, group, variant, &metrics, bucket_max);
         }
     }
 }
 
-fn forward(model: &Model, group: Vec<Job>, variant: Variant, metrics: &EngineMetrics) {
+/// `bucket_max`: pad the batch with zero inputs up to its bucket (`super::buckets`); the padded
+/// rows' descriptors are dropped (each row of a forward pass depends on its own input alone).
+fn forward(model: &Model, group: Vec<Job>, variant: Variant, metrics: &EngineMetrics, bucket_max: Option<usize>) {
     let start = Instant::now();
     for j in &group {
         metrics.queue_wait.observe(start.duration_since(j.admitted).as_secs_f64());
     }
-    let inputs: Vec<Tensor> = group.iter().map(|j| j.input.shallow_clone()).collect();
-    let result = model.descriptors(&inputs, variant).and_then(|d| rows(&d));
+    let mut inputs: Vec<Tensor> = group.iter().map(|j| j.input.shallow_clone()).collect();
+    let n = inputs.len();
+    if let Some(max) = bucket_max {
+        let size = super::buckets(max).into_iter().find(|&b| b >= n).unwrap_or(n);
+        let zeros = inputs[0].zeros_like();
+        inputs.resize_with(size, || zeros.shallow_clone());
+        metrics.padded.fetch_add((size - n) as u64, Relaxed);
+    }
+    let result = model.descriptors(&inputs, variant).and_then(|d| rows(&d.narrow(0, 0, n as i64)));
     metrics.forward_seconds.observe(start.elapsed().as_secs_f64());
     metrics.batch_size.observe(group.len() as f64);
     match result {

@@ -72,6 +72,8 @@ pub struct EngineMetrics {
     pub queue_wait: Histogram,
     pub forward_seconds: Histogram,
     pub images: AtomicU64,
+    /// Zero inputs added to fill batches up to their bucket (`EngineConfig::batch_buckets`).
+    pub padded: AtomicU64,
     pub rejected_overload: AtomicU64,
     pub cancelled: AtomicU64,
     pub failed: AtomicU64,
@@ -86,6 +88,7 @@ impl Default for EngineMetrics {
             queue_wait: Histogram::new(SECONDS_BOUNDS),
             forward_seconds: Histogram::new(SECONDS_BOUNDS),
             images: AtomicU64::new(0),
+            padded: AtomicU64::new(0),
             rejected_overload: AtomicU64::new(0),
             cancelled: AtomicU64::new(0),
             failed: AtomicU64::new(0),
@@ -99,6 +102,7 @@ impl Collector for EngineMetrics {
     fn encode(&self, mut encoder: DescriptorEncoder) -> std::fmt::Result {
         for (name, help, v) in [
             ("loopd_engine_images", "Images embedded.", &self.images),
+            ("loopd_engine_padded", "Zero inputs that filled batches up to their bucket size.", &self.padded),
             ("loopd_engine_rejected", "Requests refused: queue full.", &self.rejected_overload),
             ("loopd_engine_cancelled", "Requests dropped by their caller before the forward pass.", &self.cancelled),
             ("loopd_engine_failed", "Requests whose forward pass failed.", &self.failed),

@@ -57,3 +57,31 @@ pub fn device_name(d: Device) -> String {
         other => format!("{other:?}").to_lowercase(),
     }
 }
+
+// libtorch's own setter of the autocast precision (ATen/autocast_mode.h), which tch does not wrap:
+// `void at::autocast::set_autocast_dtype(c10::DeviceType, c10::ScalarType)`, a free function (C
+// calling convention on x86-64 and aarch64 Linux) whose two enums are `int8_t`
+// (c10/core/DeviceType.h, c10/core/ScalarType.h). It is exported by libtorch_cpu, which tch links.
+extern "C" {
+    #[link_name = "_ZN2at8autocast18set_autocast_dtypeEN3c1010DeviceTypeENS1_10ScalarTypeE"]
+    fn at_autocast_set_autocast_dtype(device_type: i8, dtype: i8);
+}
+
+/// c10::DeviceType::CUDA.
+const C10_CUDA: i8 = 1;
+
+/// Runs `f` under libtorch's CUDA autocast in `dtype`: convolutions and matrix products in half
+/// precision, reductions, normalisations and losses in f32 (PyTorch's
+/// `torch.autocast("cuda", dtype)`). F32 runs `f` as it is.
+pub fn autocast<T>(dtype: DType, f: impl FnOnce() -> T) -> T {
+    let code: i8 = match dtype {
+        DType::F32 => return f(),
+        DType::F16 => 5,   // c10::ScalarType::Half
+        DType::Bf16 => 15, // c10::ScalarType::BFloat16
+    };
+    // SAFETY: the declaration above matches the exported C++ function (both arguments are
+    // `int8_t` enums passed by value, no return value); the values are valid enumerators, and the
+    // setter only stores them in libtorch's autocast state, which tch::autocast then enables.
+    unsafe { at_autocast_set_autocast_dtype(C10_CUDA, code) };
+    tch::autocast(true, f)
+}

@@ -77,7 +77,9 @@ pub fn step(
 ) -> Result<f64> {
     opt.set_lr(lr);
     opt.zero_grad();
-    let d = model.forward_train(x, Variant::FULL);
+    // Under autocast the network runs in half precision; the loss takes f32 descriptors.
+    let d =
+        crate::model::device::autocast(r.autocast, || model.forward_train(x, Variant::FULL)).to_kind(tch::Kind::Float);
     let loss = multi_similarity(&d, pos, neg, &r.loss);
     loss.backward();
     clip_gradients(params, r.clip_norm);

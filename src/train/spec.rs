@@ -25,6 +25,9 @@ pub struct Recipe {
     /// Light augmentation of labelled views too.
     pub augment_labelled: bool,
     pub loss: MsParams,
+    /// Mixed precision of the training forward pass on CUDA (`--autocast`); F32: none.
+    #[serde(default = "no_autocast")]
+    pub autocast: crate::model::device::DType,
 }
 
 #[derive(Clone, Debug)]
@@ -64,4 +67,8 @@ pub struct ValSet {
     pub exclude: usize,
     pub range: Option<Range<usize>>,
     pub filter: Option<String>,
+}
+
+fn no_autocast() -> crate::model::device::DType {
+    crate::model::device::DType::F32
 }

@@ -43,6 +43,7 @@ fn recipe(epochs: usize, seed: u64) -> Recipe {
         train_layer4: false,
         augment_labelled: false,
         loss: MsParams::default(),
+        autocast: loopd::model::device::DType::F32,
     }
 }
 

@@ -7,6 +7,7 @@ pub use request::{job_defaults, SeqFrame, SequenceRequest};
 use super::error::ApiError;
 use super::service::{check_robot_id, make_thumbnail, Content, FrameInput, LoopService, QueryOverrides};
 use super::wire::{JobState, JobStatus, LoopClosure};
+use crate::auth::quota::Quota;
 use crate::store::{Session, Store};
 use futures::StreamExt;
 use parking_lot::Mutex;
@@ -24,6 +25,8 @@ pub struct Jobs {
     jobs: Mutex<HashMap<String, Arc<Mutex<JobStatus>>>>,
     next: std::sync::atomic::AtomicU64,
     pub max_running: usize,
+    /// A keyed tenant's jobs running at once at most (`--max-jobs-per-tenant`); see [`Jobs::admit`].
+    pub max_per_tenant: usize,
     /// Where job records are kept (they outlive the process).
     store: Arc<Store>,
 }
@@ -35,7 +38,7 @@ fn job_number(id: &str) -> u64 {
 impl Jobs {
     /// The jobs recorded in the store; those that were running when the server stopped are
     /// marked interrupted.
-    pub fn new(max_running: usize, store: Arc<Store>) -> Self {
+    pub fn new(max_running: usize, max_per_tenant: Option<usize>, store: Arc<Store>) -> Self {
         let mut jobs = HashMap::new();
         let records = store.jobs().unwrap_or_else(|e| {
             tracing::error!(error = %e, "job records not readable");
@@ -59,22 +62,27 @@ impl Jobs {
             jobs.insert(id, Arc::new(Mutex::new(status)));
         }
         let next = jobs.keys().map(|k| job_number(k)).max().unwrap_or(0);
-        Self { jobs: Mutex::new(jobs), next: next.into(), max_running: max_running.max(1), store }
+        let max_running = max_running.max(1);
+        let max_per_tenant = max_per_tenant.unwrap_or(max_running).clamp(1, max_running);
+        Self { jobs: Mutex::new(jobs), next: next.into(), max_running, max_per_tenant, store }
     }
 
     /// Starts an offline sequence job on a session; its id is returned once its record is
     /// durable (it answers after a restart), before the job has done anything.
+    /// `tenant`: the keyed tenant that sends it and its quota (its frames wait for its rate and
+    /// count as its; its jobs are held to their share of the slots), None for the default tenant.
     pub async fn start_sequence(
         &self,
         service: &LoopService,
         s: &Session,
         seq: SequenceRequest,
+        tenant: Option<(String, Arc<Quota>)>,
     ) -> Result<String, ApiError> {
         service.check_space(s)?;
         check_robot_id(&seq.robot_id)?;
         let asked = seq.options.over(&job_defaults()).apply(&s.meta.default_query);
         service.check_confidence(s, &asked)?;
-        let id = self.launch(service.clone(), s.meta.id.clone(), seq).await?;
+        let id = self.launch(service.clone(), s.meta.id.clone(), seq, tenant).await?;
         service.store.durable_records().await?;
         Ok(id)
     }
@@ -101,29 +109,70 @@ impl Jobs {
 
     /// Launches a checked job; its id is returned once its record is kept (in a cluster, in the
     /// log). [`Jobs::start_sequence`] is the one way in.
-    async fn launch(&self, service: LoopService, session: String, seq: SequenceRequest) -> Result<String, ApiError> {
+    async fn launch(
+        &self,
+        service: LoopService,
+        session: String,
+        seq: SequenceRequest,
+        tenant: Option<(String, Arc<Quota>)>,
+    ) -> Result<String, ApiError> {
         // In a cluster the log numbers jobs, so no two nodes give the same id.
         let n = match self.store.cluster_job_number().await? {
             Some(n) => n,
             None => self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1,
         };
         let id = format!("job-{n}");
-        let status = self.admit(&id, &session, seq.frames.len())?;
+        let status = self.admit(&id, &session, seq.frames.len(), tenant.as_ref().map(|(name, _)| name.as_str()))?;
         let first = status.lock().clone();
         if let Err(e) = self.store.keep_job(&id, n, &record(&first), KEPT_JOBS).await {
             self.jobs.lock().remove(&id);
             return Err(e.into());
         }
-        tokio::spawn(run(service, session, seq, status));
+        tokio::spawn(run(service, session, seq, status, tenant.map(|(_, q)| q)));
         Ok(id)
     }
 
-    /// Takes a new job into this node's list, unless too many run already.
-    fn admit(&self, id: &str, session: &str, total: usize) -> Result<Arc<Mutex<JobStatus>>, ApiError> {
+    /// Takes a new job into this node's list, unless too many run already: at most
+    /// `max_running` in all and, for a keyed tenant, at most `max_per_tenant` of its own, and a
+    /// tenant that runs a job already never takes the last free slot (it stays for a tenant
+    /// that runs none, so one tenant's bulk work cannot shut the others out).
+    fn admit(
+        &self,
+        id: &str,
+        session: &str,
+        total: usize,
+        tenant: Option<&str>,
+    ) -> Result<Arc<Mutex<JobStatus>>, ApiError> {
         let mut jobs = self.jobs.lock();
-        let running = jobs.values().filter(|j| matches!(j.lock().state, JobState::Running)).count();
-        if running >= self.max_running {
-            return Err(ApiError::Overloaded(format!("{running} sequence jobs running; at most {}", self.max_running)));
+        let running: Vec<String> = jobs
+            .values()
+            .filter_map(|j| {
+                let j = j.lock();
+                matches!(j.state, JobState::Running).then(|| j.session_id.clone())
+            })
+            .collect();
+        if running.len() >= self.max_running {
+            return Err(ApiError::Overloaded(format!(
+                "{} sequence jobs running; at most {}",
+                running.len(),
+                self.max_running
+            )));
+        }
+        if let Some(tenant) = tenant {
+            let mine = running.iter().filter(|s| tenant_of(s) == tenant).count();
+            if mine >= self.max_per_tenant {
+                return Err(ApiError::Overloaded(format!(
+                    "tenant '{tenant}' runs {mine} sequence jobs; at most {} per tenant (retry when one ends)",
+                    self.max_per_tenant
+                )));
+            }
+            if mine > 0 && running.len() + 1 == self.max_running {
+                return Err(ApiError::Overloaded(format!(
+                    "tenant '{tenant}' runs {mine} sequence jobs and one job slot of {} is free: it is kept for \
+                     a tenant that runs none (retry when one ends)",
+                    self.max_running
+                )));
+            }
         }
         // Finished jobs are kept for polling, the oldest dropped beyond KEPT_JOBS (bounded memory).
         if jobs.len() >= KEPT_JOBS {
@@ -154,6 +203,11 @@ impl Jobs {
     }
 }
 
+/// The tenant of a store session id (`Caller::store_id`): its prefix, else the default tenant.
+fn tenant_of(store_id: &str) -> &str {
+    store_id.split_once('/').map_or(crate::auth::caller::DEFAULT_TENANT, |(tenant, _)| tenant)
+}
+
 fn record(status: &JobStatus) -> Vec<u8> {
     serde_json::to_vec(status).expect("a job status serialises")
 }
@@ -166,7 +220,13 @@ async fn save(store: &Store, status: &JobStatus) {
     }
 }
 
-async fn run(service: LoopService, session: String, seq: SequenceRequest, status: Arc<Mutex<JobStatus>>) {
+async fn run(
+    service: LoopService,
+    session: String,
+    seq: SequenceRequest,
+    status: Arc<Mutex<JobStatus>>,
+    quota: Option<Arc<Quota>>,
+) {
     let engine = service.engine.clone();
     let width = engine.config().max_batch.max(1);
     // Held while the job runs: a cluster node drops a session it does not own once no one holds
@@ -249,6 +309,10 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
             thumbnail,
             idempotency_key: None,
         };
+        // The tenant's rate: each frame waits for a token, as a request of it would need one.
+        if let Some(q) = &quota {
+            q.pace().await;
+        }
         // Looked up for each frame: a session deleted while its job runs ends the job.
         let answer = match service.store.session(&session) {
             Ok(s) => service.add_and_query(&s, frame, &opts).await,
@@ -256,6 +320,9 @@ async fn run(service: LoopService, session: String, seq: SequenceRequest, status
         };
         match answer {
             Ok((frame_id, matches)) => {
+                if let Some(q) = &quota {
+                    q.added(1);
+                }
                 let mut s = status.lock();
                 let first = matches.first().filter(|c| c.confidence.unwrap_or(1.0) >= min_confidence);
                 if let Some(c) = first {

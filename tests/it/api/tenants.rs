@@ -536,3 +536,81 @@ async fn tenants_are_managed_over_grpc_with_the_admin_key() {
     assert_eq!(missing.unwrap_err().code(), tonic::Code::NotFound);
     server.shutdown().await.unwrap();
 }
+
+/// One sequence job of `n` corridor frames for `key`'s session `map` (HTTP, multipart); the
+/// status and the answer.
+async fn corridor_job(http: &Http, key: &str, n: usize) -> (u16, serde_json::Value) {
+    let mut form = reqwest::multipart::Form::new().text("order", "name");
+    for i in 0..n {
+        let image = std::fs::read(data(&format!("corridor/ref/{:07}.jpg", i * 7))).unwrap();
+        form = form.part("image", reqwest::multipart::Part::bytes(image).file_name(format!("{i:03}.jpg")));
+    }
+    let r = http.c.post(format!("{}/v1/sessions/map/sequences", http.base)).bearer_auth(key).multipart(form);
+    let r = r.send().await.unwrap();
+    (r.status().as_u16(), r.json().await.unwrap_or_default())
+}
+
+/// Issue #35, items 1 and 2, through the real server: a sequence job's frames wait for their
+/// tenant's rate (a rate-2/s tenant's job never has more than rate x time + burst frames added)
+/// and count as its frames in /metrics; a tenant that runs a job cannot take the last free job
+/// slot, and another tenant gets it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn jobs_wait_for_their_tenants_rate_and_leave_a_slot_for_another_tenant() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = ServerConfig {
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        auth: AuthConfig { admin_key: Some(ADMIN.into()), ..Default::default() },
+        max_jobs: 2,
+        ..ServerConfig::on_loopback(dir.path().to_path_buf())
+    };
+    let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
+    let http = Http::new(&server);
+    let mut keys = Vec::new();
+    for (name, limits) in [("bulk", json!({ "rate": 2.0 })), ("other", json!({}))] {
+        let (_, t) =
+            http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": name, "limits": limits }))).await;
+        let key = t["key"].as_str().unwrap().to_string();
+        let (st, _) = http.call("POST", "/v1/sessions", Some(&key), Some(json!({ "id": "map" }))).await;
+        assert_eq!(st, 201);
+        keys.push(key);
+    }
+    // Bulk starts with two tokens (one second of burst); the job's submission takes one.
+    let (rate, burst, n) = (2.0, 2.0, 14);
+    let (st, job) = corridor_job(&http, &keys[0], n).await;
+    assert_eq!(st, 202, "{job}");
+    let started = std::time::Instant::now();
+    let url = job["status_url"].as_str().unwrap().to_string();
+
+    // Bulk's second job would take the last free slot: refused, naming the rule. Other's is not.
+    let (st, refused) = corridor_job(&http, &keys[0], 2).await;
+    assert_eq!(st, 429, "{refused}");
+    assert!(refused["error"].as_str().unwrap().contains("kept for a tenant that runs none"), "{refused}");
+    let (st, other_job) = corridor_job(&http, &keys[1], 2).await;
+    assert_eq!(st, 202, "the other tenant's job takes the free slot: {other_job}");
+
+    let mut polls = Vec::new();
+    let done = loop {
+        let (st, status) = http.call("GET", &url, Some(&keys[0]), None).await;
+        assert_eq!(st, 200, "{status}");
+        let done = status["done"].as_u64().unwrap() as f64;
+        let t = started.elapsed().as_secs_f64();
+        polls.push((t, done));
+        assert!(done <= rate * t + burst, "{done} frames added {t:.2} s after the job started, at 2/s: {polls:?}");
+        if status["state"] != "running" {
+            assert_eq!(status["state"], "done", "{status}");
+            break done;
+        }
+        assert!(t < 60.0, "the job did not end in 60 s: {status}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    assert_eq!(done as usize, n);
+    let took = started.elapsed().as_secs_f64();
+    assert!(took >= (n as f64 - burst) / rate - 0.5, "{n} frames at 2/s took {took:.1} s");
+    let metrics = http.c.get(format!("{}/metrics", http.base)).bearer_auth(ADMIN).send().await.unwrap();
+    let metrics = metrics.text().await.unwrap();
+    let sample = |name: &str| {
+        metrics.lines().find(|l| l.starts_with(name)).and_then(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
+    };
+    assert_eq!(sample("loopd_tenant_frames_added_total{tenant=\"bulk\"}"), Some(n as u64));
+    server.shutdown().await.unwrap();
+}

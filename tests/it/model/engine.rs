@@ -16,6 +16,30 @@ fn cos(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
+/// Each frame's descriptor, one request at a time (every forward pass has batch size 1).
+async fn one_at_a_time(engine: &Engine, frames: &[bytes::Bytes]) -> Vec<Vec<f32>> {
+    let mut alone = Vec::new();
+    for f in frames {
+        alone.push(engine.embed_image(f.clone(), Variant::FULL).await.unwrap());
+    }
+    alone
+}
+
+/// Every frame sent at once, one caller each.
+fn all_at_once(
+    engine: &Engine,
+    frames: &[bytes::Bytes],
+) -> Vec<tokio::task::JoinHandle<Result<Vec<f32>, EngineError>>> {
+    frames
+        .iter()
+        .cloned()
+        .map(|f| {
+            let e = engine.clone();
+            tokio::spawn(async move { e.embed_image(f, Variant::FULL).await })
+        })
+        .collect()
+}
+
 /// A small random-weight model: the flood and cancel tests are about queueing, not accuracy.
 fn small_engine(cfg: EngineConfig) -> Engine {
     let mut mc = ModelConfig::default();
@@ -33,19 +57,9 @@ async fn sixty_four_concurrent_callers_each_get_their_own_descriptor() {
     let engine = Engine::start(model, cfg, ImageLimits::default()).unwrap();
     let frames = corridor_frames(64);
     // Each frame alone: one request at a time, so every forward pass has batch size 1.
-    let mut alone = Vec::new();
-    for f in &frames {
-        alone.push(engine.embed_image(f.clone(), Variant::FULL).await.unwrap());
-    }
+    let alone = one_at_a_time(&engine, &frames).await;
     assert_eq!(engine.metrics().batch_size.max_bucket(), 1.0);
-    let tasks: Vec<_> = frames
-        .iter()
-        .cloned()
-        .map(|f| {
-            let e = engine.clone();
-            tokio::spawn(async move { e.embed_image(f, Variant::FULL).await })
-        })
-        .collect();
+    let tasks = all_at_once(&engine, &frames);
     // A wrong descriptor for one frame (CI's run of 453a5b9 here, docs/ci.md) is named as such.
     for (k, d) in alone.iter().enumerate() {
         assert!(d.iter().all(|x| x.is_finite()), "frame {k} embedded alone has a non-finite descriptor");
@@ -67,6 +81,42 @@ async fn sixty_four_concurrent_callers_each_get_their_own_descriptor() {
     }
     assert!(engine.metrics().batch_size.max_bucket() > 1.0, "no batch larger than 1 was formed");
     assert_eq!(engine.metrics().images.load(std::sync::atomic::Ordering::Relaxed), 128);
+}
+
+/// Batch buckets (on by default on a GPU): batches padded with zero inputs up to a power of two
+/// give each caller the descriptor of its own frame alone, and only bucket sizes run.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn padded_batches_give_each_caller_its_own_descriptor() {
+    use std::sync::atomic::Ordering::Relaxed;
+    assert_eq!(loopd::engine::buckets(12), vec![1, 2, 4, 8, 12]);
+    assert_eq!(loopd::engine::buckets(1), vec![1]);
+    let model = imagenet_model();
+    model.randomize(3, true);
+    let cfg = EngineConfig {
+        max_batch: 8,
+        max_delay: Duration::from_millis(1000),
+        batch_buckets: Some(true),
+        warm_up: false,
+        ..Default::default()
+    };
+    let engine = Engine::start(model, cfg, ImageLimits::default()).unwrap();
+    let frames = corridor_frames(5);
+    let alone = one_at_a_time(&engine, &frames).await;
+    assert_eq!(engine.metrics().padded.load(Relaxed), 0, "batches of 1 are a bucket: nothing to pad");
+    // Five callers at once, within one batching window: one batch of 5, run as 8.
+    let tasks = all_at_once(&engine, &frames);
+    for (i, t) in tasks.into_iter().enumerate() {
+        let d = t.await.unwrap().unwrap();
+        let own = cos(&d, &alone[i]);
+        assert!(own >= 0.9999, "caller {i}: cosine to its own frame alone is {own}");
+    }
+    let m = engine.metrics();
+    assert_eq!(m.images.load(Relaxed), 10, "padding rows are not counted as images");
+    let batched = m.batch_size.count() - 5;
+    let padded = m.padded.load(Relaxed);
+    assert!(batched >= 1 && padded > 0, "no padded batch ({batched} batches after the singles, {padded} padded)");
+    // Whatever the split of the five callers into batches, each ran at a bucket size.
+    assert!(padded <= 3 * batched, "{padded} padding rows over {batched} batches");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
