@@ -8,7 +8,9 @@ use super::service::{CreateSession, FrameInput, LoopMatch, LoopService, QueryOve
 use super::wire::JobStatus;
 use crate::auth::quota::{InFlight, Refusal};
 use crate::auth::Caller;
+use crate::engine::{in_lane, Lane};
 use crate::inspect::similarity::Similarity;
+use crate::model::network::Variant;
 use crate::store::loops::{LoopFilter, LoopRecord, Page, Transform};
 use crate::store::record::FrameHeader;
 use crate::store::{Session, SessionInfo};
@@ -68,6 +70,12 @@ impl Scoped<'_> {
             }
         }
         quota.enter().map(Some).map_err(|m| refuse(Refusal::Queue, m))
+    }
+
+    /// The caller's lane in the engine: its tenant, at its weight (default 1).
+    fn lane(&self) -> Lane {
+        let weight = self.caller.quota().and_then(|q| q.limits.weight).unwrap_or(1);
+        Lane { name: Arc::from(self.caller.tenant_name()), weight }
     }
 
     /// Counts frames a tenant stored.
@@ -160,10 +168,15 @@ impl Scoped<'_> {
         self.service.set_verdict(&s, query, matched, accepted, relative_pose, covariance).await
     }
 
+    /// An image's descriptor (no session), in the caller's lane of the model.
+    pub async fn embed(&self, image: bytes::Bytes, variant: Variant) -> Result<(String, Vec<f32>), ApiError> {
+        in_lane(self.lane(), self.service.embed(image, variant)).await
+    }
+
     pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {
         let s = self.fresh(session).await?;
         let _slot = self.admit(1).await?;
-        let id = self.service.add_frame(&s, f).await?;
+        let id = in_lane(self.lane(), self.service.add_frame(&s, f)).await?;
         self.added(1);
         Ok(id)
     }
@@ -178,7 +191,7 @@ impl Scoped<'_> {
     ) -> Result<Vec<LoopMatch>, ApiError> {
         let s = self.fresh(session).await?;
         let _slot = self.admit(0).await?;
-        self.service.query(&s, robot_id, at_time, target, options).await
+        in_lane(self.lane(), self.service.query(&s, robot_id, at_time, target, options)).await
     }
 
     pub async fn add_and_query(
@@ -189,7 +202,7 @@ impl Scoped<'_> {
     ) -> Result<(u64, Vec<LoopMatch>), ApiError> {
         let s = self.fresh(session).await?;
         let _slot = self.admit(1).await?;
-        let answer = self.service.add_and_query(&s, f, options).await?;
+        let answer = in_lane(self.lane(), self.service.add_and_query(&s, f, options)).await?;
         self.added(1);
         Ok(answer)
     }
@@ -200,7 +213,7 @@ impl Scoped<'_> {
         // job's frames then wait for the tenant's rate, one token each, and are counted as its.
         drop(self.admit(seq.frames.len()).await?);
         let tenant = self.caller.quota_arc().map(|q| (self.caller.tenant_name().to_string(), q.clone()));
-        jobs.start_sequence(self.service, &s, seq, tenant).await
+        jobs.start_sequence(self.service, &s, seq, tenant, self.lane()).await
     }
 
     /// A job of one of this tenant's sessions.

@@ -19,12 +19,22 @@ pub struct Limits {
     /// Frames and queries of this tenant being embedded or searched at once (default: the
     /// server's --tenant-queue-share of its queue), so one flooding tenant cannot starve others.
     pub max_in_flight: Option<u64>,
+    /// The tenant's share of the model's forward passes against other tenants with work
+    /// queued (default 1: equal shares; 1 to 1000): each batch is filled from the tenants'
+    /// queues by deficit round robin in proportion to their weights.
+    pub weight: Option<u32>,
 }
+
+/// Most weight a tenant may have (its share against a weight-1 tenant).
+pub const MAX_WEIGHT: u32 = 1000;
 
 impl Limits {
     pub fn validate(&self) -> Result<(), String> {
         if self.max_in_flight == Some(0) {
             return Err("max_in_flight must be at least 1".into());
+        }
+        if let Some(w) = self.weight.filter(|w| !(1..=MAX_WEIGHT).contains(w)) {
+            return Err(format!("weight {w} must be in 1..={MAX_WEIGHT}"));
         }
         match self.rate {
             Some(r) if !(r.is_finite() && r > 0.0 && r <= 1e6) => {
@@ -178,6 +188,9 @@ mod tests {
         assert!(q.take().is_ok(), "refilled at 5 per second");
         assert!(Quota::new(Limits::default(), None).take().is_ok());
         assert!(Limits { rate: Some(f64::NAN), ..Default::default() }.validate().is_err());
+        for (weight, ok) in [(0, false), (1, true), (MAX_WEIGHT, true), (MAX_WEIGHT + 1, false)] {
+            assert_eq!(Limits { weight: Some(weight), ..Default::default() }.validate().is_ok(), ok, "weight {weight}");
+        }
     }
 
     #[test]

@@ -39,6 +39,10 @@ enum TenantCommand {
         /// --tenant-queue-share of its queue).
         #[arg(long)]
         max_in_flight: Option<u64>,
+        /// Its share of the model's forward passes against other tenants with work queued
+        /// (1-1000; default 1, equal shares).
+        #[arg(long)]
+        weight: Option<u32>,
     },
     /// Every tenant: name, key id, created, revoked.
     List,
@@ -55,9 +59,10 @@ pub fn run(a: TenantArgs) -> Result<ExitCode> {
     let http = Http::new(&a.server, Some(key), &a.tls)?;
     let (client, base) = (&http.client, &http.base);
     let request = match &a.command {
-        TenantCommand::Create { name, max_sessions, max_frames, rate, max_in_flight } => {
+        TenantCommand::Create { name, max_sessions, max_frames, rate, max_in_flight, weight } => {
             let limits = serde_json::json!({
-                "max_sessions": max_sessions, "max_frames": max_frames, "rate": rate, "max_in_flight": max_in_flight
+                "max_sessions": max_sessions, "max_frames": max_frames, "rate": rate, "max_in_flight": max_in_flight,
+                "weight": weight
             });
             client.post(format!("{base}/v1/tenants")).json(&serde_json::json!({ "name": name, "limits": limits }))
         }

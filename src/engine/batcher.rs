@@ -1,11 +1,17 @@
 //! The model thread: take up to `max_batch` queued inputs, or what arrived within
 //! `max_delay` of the first, and run them as one forward pass (Triton-style dynamic batching).
+//! Queued inputs wait in one queue per lane (a tenant: `super::Lane`), and each batch is filled
+//! from the lanes by deficit round robin, each lane's share of a batch in proportion to its
+//! weight: a tenant that keeps the queue full delays another's frame by about one batch, not by
+//! its whole backlog. A lane alone gets whole batches, as one queue would.
 use super::metrics::EngineMetrics;
-use super::{EngineConfig, EngineError};
+use super::{EngineConfig, EngineError, Lane};
 use crate::model::network::Variant;
 use crate::model::{rows, Model};
+use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, TryRecvError};
+use std::sync::Arc;
 use std::time::Instant;
 use tch::Tensor;
 use tokio::sync::oneshot;
@@ -14,19 +20,99 @@ pub(super) struct Job {
     pub input: Tensor,
     pub variant: Variant,
     pub admitted: Instant,
+    pub lane: Lane,
     pub reply: oneshot::Sender<Result<Vec<f32>, EngineError>>,
 }
 
+/// One lane's waiting jobs and what it may still take this round.
+struct LaneQueue {
+    jobs: VecDeque<Job>,
+    deficit: u64,
+    weight: u64,
+}
+
+/// The queued jobs by lane, and the lanes with work in round-robin order.
+#[derive(Default)]
+pub(super) struct Fair {
+    lanes: HashMap<Arc<str>, LaneQueue>,
+    order: VecDeque<Arc<str>>,
+    queued: usize,
+}
+
+impl Fair {
+    pub(super) fn push(&mut self, job: Job) {
+        let weight = u64::from(job.lane.weight.max(1));
+        let name = job.lane.name.clone();
+        let lane = match self.lanes.entry(name) {
+            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::hash_map::Entry::Vacant(e) => {
+                self.order.push_back(e.key().clone());
+                e.insert(LaneQueue { jobs: VecDeque::new(), deficit: 0, weight })
+            }
+        };
+        lane.weight = weight; // a tenant's weight may change while it has work queued
+        lane.jobs.push_back(job);
+        self.queued += 1;
+    }
+
+    pub(super) fn len(&self) -> usize {
+        self.queued
+    }
+
+    /// Up to `max` jobs by deficit round robin: each visit adds the lane's weight to its
+    /// deficit and takes that many of its jobs (fewer if the batch fills; the rest of its
+    /// deficit stays for its next visit). A lane that empties leaves the round with no credit.
+    pub(super) fn take(&mut self, max: usize) -> Vec<Job> {
+        let mut batch = Vec::new();
+        while batch.len() < max {
+            let Some(name) = self.order.pop_front() else { break };
+            let Some(lane) = self.lanes.get_mut(&name) else { continue };
+            lane.deficit += lane.weight;
+            while lane.deficit > 0 && batch.len() < max {
+                let Some(job) = lane.jobs.pop_front() else { break };
+                batch.push(job);
+                lane.deficit -= 1;
+                self.queued -= 1;
+            }
+            if lane.jobs.is_empty() {
+                self.lanes.remove(&name);
+            } else {
+                self.order.push_back(name);
+            }
+        }
+        batch
+    }
+}
+
 pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: std::sync::Arc<EngineMetrics>) {
-    while let Ok(first) = rx.recv() {
+    let mut fair = Fair::default();
+    let bucket_max = if cfg.batch_buckets == Some(true) { Some(cfg.max_batch) } else { None };
+    loop {
+        if fair.len() == 0 {
+            match rx.recv() {
+                Ok(job) => fair.push(job),
+                Err(_) => return, // every sender gone: the engine was dropped
+            }
+        }
+        // Everything sent so far joins its lane; then wait out the window for a full batch.
         let window_end = Instant::now() + cfg.max_delay;
-        let mut jobs = vec![first];
-        while jobs.len() < cfg.max_batch {
+        loop {
+            match rx.try_recv() {
+                Ok(job) => {
+                    fair.push(job);
+                    continue;
+                }
+                Err(TryRecvError::Empty) | Err(TryRecvError::Disconnected) => {}
+            }
+            if fair.len() >= cfg.max_batch {
+                break;
+            }
             match rx.recv_timeout(window_end.saturating_duration_since(Instant::now())) {
-                Ok(j) => jobs.push(j),
+                Ok(job) => fair.push(job),
                 Err(RecvTimeoutError::Timeout) | Err(RecvTimeoutError::Disconnected) => break,
             }
         }
+        let mut jobs = fair.take(cfg.max_batch);
         // A caller that gave up (client gone, gRPC deadline passed) costs no forward pass.
         let before = jobs.len();
         jobs.retain(|j| !j.reply.is_closed());
@@ -37,7 +123,6 @@ pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: s
             let (group, rest): (Vec<Job>, Vec<Job>) =
                 jobs.into_iter().partition(|j| j.input.size() == size && j.variant == variant);
             jobs = rest;
-            let bucket_max = if cfg.batch_buckets == Some(true) { Some(cfg.max_batch) } else { None };
             forward(&model, group, variant, &metrics, bucket_max);
         }
     }

@@ -1,7 +1,8 @@
 //! The inference engine: every API's frames go through it to the one model thread.
 //!
 //! `Engine` (this file) admits requests against a bound and decodes them on blocking workers;
-//! `batcher` runs on the model thread and turns the queue into forward passes; `metrics` counts.
+//! `batcher` runs on the model thread and turns the queue into forward passes, fairly between
+//! lanes (tenants, see [`Lane`]); `metrics` counts.
 mod batcher;
 pub mod metrics;
 
@@ -18,6 +19,38 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tch::Tensor;
 use tokio::sync::{oneshot, Semaphore};
+
+/// Whose work a request is, for fair batching: the batcher fills each batch from the lanes with
+/// work queued in proportion to their weights. Requests take the lane of the task they run in
+/// ([`in_lane`]); outside one they share the default lane (a server without tenants has only it).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Lane {
+    pub name: Arc<str>,
+    /// Share of forward passes against other lanes with work queued (at least 1).
+    pub weight: u32,
+}
+
+impl Default for Lane {
+    fn default() -> Self {
+        Self { name: Arc::from(""), weight: 1 }
+    }
+}
+
+tokio::task_local! {
+    static LANE: Lane;
+}
+
+/// Runs `f` with every engine request it makes in `lane` (set once where a caller is known, so
+/// the layers between need not pass it along).
+pub async fn in_lane<F: std::future::Future>(lane: Lane, f: F) -> F::Output {
+    LANE.scope(lane, f).await
+}
+
+/// The lane of the task this runs in (the default lane outside [`in_lane`]); a task spawned
+/// from it takes its lane along with `in_lane(current_lane(), ..)`.
+pub fn current_lane() -> Lane {
+    LANE.try_with(Lane::clone).unwrap_or_default()
+}
 
 #[derive(Clone, Debug)]
 pub struct EngineConfig {
@@ -231,7 +264,7 @@ impl Engine {
         admission: Admission,
     ) -> Result<Vec<f32>, EngineError> {
         let (reply, rx) = oneshot::channel();
-        let job = Job { input, variant, admitted, reply };
+        let job = Job { input, variant, admitted, lane: current_lane(), reply };
         self.tx.try_send(job).map_err(|e| match e {
             TrySendError::Full(_) => EngineError::Overloaded(self.cfg.queue_capacity),
             TrySendError::Disconnected(_) => EngineError::Stopped,

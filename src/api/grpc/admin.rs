@@ -20,7 +20,13 @@ impl AdminApi {
 
 fn limits(l: Option<pb::TenantLimits>) -> Limits {
     let l = l.unwrap_or_default();
-    Limits { max_sessions: l.max_sessions, max_frames: l.max_frames, rate: l.rate, max_in_flight: l.max_in_flight }
+    Limits {
+        max_sessions: l.max_sessions,
+        max_frames: l.max_frames,
+        rate: l.rate,
+        max_in_flight: l.max_in_flight,
+        weight: l.weight,
+    }
 }
 
 fn tenant(t: TenantInfo) -> pb::Tenant {
@@ -35,6 +41,7 @@ fn tenant(t: TenantInfo) -> pb::Tenant {
             max_frames: l.max_frames,
             rate: l.rate,
             max_in_flight: l.max_in_flight,
+            weight: l.weight,
         }),
     }
 }

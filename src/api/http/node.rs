@@ -3,6 +3,7 @@
 use super::doc::{BadRequest, Binary, Forbidden, Overloaded, TooLarge, Unauthorized, Unavailable};
 use super::state::AppState;
 use crate::api::error::{ApiError, ErrorBody};
+use crate::auth::Caller;
 use crate::model::network::Variant;
 use crate::store::ClusterView;
 use axum::body::Bytes;
@@ -10,6 +11,7 @@ use axum::extract::rejection::{BytesRejection, QueryRejection};
 use axum::extract::{Query, State};
 use axum::http::header;
 use axum::response::IntoResponse;
+use axum::Extension;
 use axum::Json;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -142,12 +144,13 @@ pub struct EmbedResponse {
 )]
 pub async fn embed(
     State(s): State<Arc<AppState>>,
+    Extension(caller): Extension<Caller>,
     q: Result<Query<EmbedQuery>, QueryRejection>,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Json<EmbedResponse>, ApiError> {
     let Query(q) = q.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
     let body = body.map_err(|e| ApiError::TooLarge(e.body_text()))?;
     let variant = Variant { attention: q.attention.unwrap_or(true), fusion: q.fusion.unwrap_or(true) };
-    let (descriptor_id, descriptor) = s.service.embed(body, variant).await?;
+    let (descriptor_id, descriptor) = s.service.scoped(caller).embed(body, variant).await?;
     Ok(Json(EmbedResponse { descriptor_id, descriptor }))
 }

@@ -8,6 +8,7 @@ use super::error::ApiError;
 use super::service::{check_robot_id, make_thumbnail, Content, FrameInput, LoopService, QueryOverrides};
 use super::wire::{JobState, JobStatus, LoopClosure};
 use crate::auth::quota::Quota;
+use crate::engine::{current_lane, in_lane, Lane};
 use crate::store::{Session, Store};
 use futures::StreamExt;
 use parking_lot::Mutex;
@@ -77,12 +78,13 @@ impl Jobs {
         s: &Session,
         seq: SequenceRequest,
         tenant: Option<(String, Arc<Quota>)>,
+        lane: Lane,
     ) -> Result<String, ApiError> {
         service.check_space(s)?;
         check_robot_id(&seq.robot_id)?;
         let asked = seq.options.over(&job_defaults()).apply(&s.meta.default_query);
         service.check_confidence(s, &asked)?;
-        let id = self.launch(service.clone(), s.meta.id.clone(), seq, tenant).await?;
+        let id = self.launch(service.clone(), s.meta.id.clone(), seq, tenant, lane).await?;
         service.store.durable_records().await?;
         Ok(id)
     }
@@ -115,6 +117,7 @@ impl Jobs {
         session: String,
         seq: SequenceRequest,
         tenant: Option<(String, Arc<Quota>)>,
+        lane: Lane,
     ) -> Result<String, ApiError> {
         // In a cluster the log numbers jobs, so no two nodes give the same id.
         let n = match self.store.cluster_job_number().await? {
@@ -128,7 +131,8 @@ impl Jobs {
             self.jobs.lock().remove(&id);
             return Err(e.into());
         }
-        tokio::spawn(run(service, session, seq, status, tenant.map(|(_, q)| q)));
+        // The job's frames share the model in its tenant's lane, as its requests do.
+        tokio::spawn(in_lane(lane, run(service, session, seq, status, tenant.map(|(_, q)| q))));
         Ok(id)
     }
 
@@ -254,10 +258,11 @@ async fn run(
     // first come, first served) would hold it, unpolled, while this loop's check waited for
     // that worker: the job stopped for good. A job that ends early aborts the frames ahead it
     // drops (no embedding or extraction left running for nothing).
+    let lane = current_lane();
     let mut embedded = futures::stream::iter(seq.frames.into_iter().enumerate())
         .map(|(i, f)| {
             let (engine, verifier) = (engine.clone(), service.verifier.clone());
-            AbortOnDropHandle::new(tokio::spawn(async move {
+            AbortOnDropHandle::new(tokio::spawn(in_lane(lane.clone(), async move {
                 let embed = engine.embed_image(f.image.clone(), crate::model::network::Variant::FULL);
                 let extract = async {
                     match features {
@@ -270,7 +275,7 @@ async fn run(
                 let (result, extracted, thumbnail) =
                     tokio::join!(embed, extract, make_thumbnail(&f.image, limits, thumbnails));
                 (i, f.name, f.robot_id, f.timestamp, result.map(|d| (d, extracted)), thumbnail)
-            }))
+            })))
         })
         .buffered(width);
     let mut names: HashMap<u64, (usize, String)> = HashMap::new();

@@ -614,3 +614,55 @@ async fn jobs_wait_for_their_tenants_rate_and_leave_a_slot_for_another_tenant() 
     assert_eq!(sample("loopd_tenant_frames_added_total{tenant=\"bulk\"}"), Some(n as u64));
     server.shutdown().await.unwrap();
 }
+
+/// The model is shared between tenants by batches, not by arrival: a tenant's backlog of images
+/// delays another tenant's image by about one batch (real server, real images over HTTP).
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_tenants_backlog_delays_another_tenants_image_by_about_one_batch() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path()).await; // max_batch 4
+    let http = Http::new(&server);
+    let mut keys = Vec::new();
+    for name in ["bulk", "light"] {
+        let (st, t) = http.call("POST", "/v1/tenants", Some(ADMIN), Some(json!({ "name": name }))).await;
+        assert_eq!(st, 201, "{t}");
+        keys.push(t["key"].as_str().unwrap().to_string());
+    }
+    let image = std::fs::read(data("corridor/query/0000000.jpg")).unwrap();
+    let done = std::sync::Arc::new(parking_lot::Mutex::new(Vec::new()));
+    let send = |key: &str, tag: &'static str| {
+        let (c, url, key, body, done) =
+            (http.c.clone(), format!("{}/v1/embed", http.base), key.to_string(), image.clone(), done.clone());
+        tokio::spawn(async move {
+            let r = c.post(url).bearer_auth(key).body(body).send().await.unwrap();
+            assert_eq!(r.status(), 200, "{tag}: {}", r.text().await.unwrap());
+            done.lock().push(tag);
+        })
+    };
+    let mut tasks: Vec<_> = (0..24).map(|_| send(&keys[0], "bulk")).collect();
+    // Light's image goes in once bulk's are in the engine.
+    let start = std::time::Instant::now();
+    loop {
+        let m = http.c.get(format!("{}/metrics", http.base)).bearer_auth(ADMIN).send().await.unwrap();
+        let text = m.text().await.unwrap();
+        let depth = text
+            .lines()
+            .find_map(|l| l.strip_prefix("loopd_engine_queue_depth "))
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .unwrap_or(0);
+        if depth >= 20 {
+            break;
+        }
+        assert!(start.elapsed() < Duration::from_secs(20), "bulk's images did not reach the engine: depth {depth}");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    tasks.push(send(&keys[1], "light"));
+    for t in tasks {
+        t.await.unwrap();
+    }
+    let order = done.lock().clone();
+    let before = order.iter().position(|t| *t == "light").unwrap();
+    // One queue for all would answer it after about 20 of bulk's.
+    assert!(before <= 8, "{before} of bulk's images were answered before light's: {order:?}");
+    server.shutdown().await.unwrap();
+}

@@ -205,3 +205,90 @@ async fn bad_images_are_refused_by_the_engine_and_it_keeps_serving() {
     assert!(text.contains("loopd_engine_images_total 1"), "{text}");
     assert!(text.contains("loopd_engine_batch_size_bucket{le=\"1.0\"} 1"), "{text}");
 }
+
+/// Requests of `n` callers at once in `lane`, each pushing `tag` into `done` when answered.
+fn flood(
+    engine: &Engine,
+    lane: loopd::engine::Lane,
+    tag: &'static str,
+    n: usize,
+    done: &std::sync::Arc<parking_lot::Mutex<Vec<&'static str>>>,
+) -> Vec<tokio::task::JoinHandle<()>> {
+    (0..n)
+        .map(|_| {
+            let (e, done, lane) = (engine.clone(), done.clone(), lane.clone());
+            let x = tch::Tensor::randn([3, 64, 64], tch::kind::FLOAT_CPU);
+            tokio::spawn(loopd::engine::in_lane(lane, async move {
+                e.embed_input(x, Variant::FULL).await.unwrap();
+                done.lock().push(tag);
+            }))
+        })
+        .collect()
+}
+
+/// Waits until the engine holds at least `n` requests.
+async fn queued_at_least(engine: &Engine, n: u64) {
+    let start = Instant::now();
+    while engine.metrics().queued.load(std::sync::atomic::Ordering::Relaxed) < n {
+        assert!(start.elapsed() < Duration::from_secs(10), "fewer than {n} requests reached the engine in 10 s");
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+}
+
+fn lane(name: &str, weight: u32) -> loopd::engine::Lane {
+    loopd::engine::Lane { name: name.into(), weight }
+}
+
+fn fair_engine() -> Engine {
+    small_engine(EngineConfig {
+        max_batch: 4,
+        max_delay: Duration::from_millis(1),
+        queue_capacity: 512,
+        warm_up: false,
+        batch_buckets: Some(false),
+        ..Default::default()
+    })
+}
+
+/// A lane (tenant) that fills the queue delays another lane's request by about one batch, not
+/// by its whole backlog: each batch is filled from the lanes with work by round robin.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_lane_that_floods_the_engine_delays_another_by_about_one_batch() {
+    let engine = fair_engine();
+    let done = std::sync::Arc::new(parking_lot::Mutex::new(Vec::new()));
+    let mut tasks = flood(&engine, lane("bulk", 1), "bulk", 60, &done);
+    queued_at_least(&engine, 50).await;
+    tasks.extend(flood(&engine, lane("other", 1), "other", 1, &done));
+    for t in tasks {
+        t.await.unwrap();
+    }
+    let order = done.lock().clone();
+    let before = order.iter().position(|t| *t == "other").unwrap();
+    // At most the batch running when it arrived and its own batch's other three.
+    assert!(before <= 8, "60 queued requests of another lane: {before} were answered before this one: {order:?}");
+}
+
+/// Lanes with work share each batch in proportion to their weights (3:1 here); a lane alone
+/// fills whole batches.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn lanes_share_the_batches_by_weight_and_a_lane_alone_fills_them() {
+    let engine = fair_engine();
+    let done = std::sync::Arc::new(parking_lot::Mutex::new(Vec::new()));
+    let mut tasks = Vec::new();
+    for _ in 0..40 {
+        tasks.extend(flood(&engine, lane("heavy", 3), "heavy", 1, &done));
+        tasks.extend(flood(&engine, lane("light", 1), "light", 1, &done));
+    }
+    for t in tasks {
+        t.await.unwrap();
+    }
+    let order = done.lock().clone();
+    // Past the first two batches (formed while the requests were still arriving), while both
+    // lanes have work: 8 batches of 4.
+    let heavy = order[8..40].iter().filter(|t| **t == "heavy").count();
+    assert!((20..=28).contains(&heavy), "heavy (weight 3) got {heavy} of 32 places, light the rest: {order:?}");
+    // Once heavy has none left, light runs alone, in full batches.
+    let m = engine.metrics();
+    assert_eq!(m.images.load(std::sync::atomic::Ordering::Relaxed), 80);
+    assert!(m.batch_size.sum() / m.batch_size.count() as f64 >= 3.0, "batches were not kept full");
+}
