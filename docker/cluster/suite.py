@@ -184,7 +184,13 @@ class Cluster:
             if state.startswith("exited"):
                 raise AssertionError(f"{c} exited: {logs(c)[-3000:]}")
             return state == "running healthy"
-        until(f"{c} healthy", ready, timeout)
+        try:
+            until(f"{c} healthy", ready, timeout)
+        except AssertionError as e:
+            # What the node said: its state, its last health probes and its own last lines.
+            state = sh("docker", "inspect", "-f", "{{.State.Status}} restarts={{.RestartCount}} "
+                       "{{json .State.Health.Log}}", c, check=False)
+            raise AssertionError(f"{e}\n{c}: {state[-2000:]}\n{c}'s log:\n{logs(c)[-4000:]}") from None
 
     def balanced(self, column: str = "status") -> dict[str, str]:
         """HAProxy's view, backend/server -> a column of its stats (status: UP, DOWN, ...)."""

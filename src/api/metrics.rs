@@ -11,19 +11,14 @@ use prometheus_client::registry::Registry;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 
-/// Answers whose loop candidates could not be kept (the service counts them).
+/// A count the service keeps (name, help, value).
 #[derive(Debug)]
-struct LoopsNotKept(Arc<AtomicU64>);
+struct Count(&'static str, &'static str, Arc<AtomicU64>);
 
-impl Collector for LoopsNotKept {
+impl Collector for Count {
     fn encode(&self, mut encoder: DescriptorEncoder) -> std::fmt::Result {
-        let counter = ConstCounter::new(self.0.load(Relaxed));
-        counter.encode(encoder.encode_descriptor(
-            "loopd_loops_not_kept",
-            "Answers whose loop candidates could not be kept.",
-            None,
-            counter.metric_type(),
-        )?)
+        let counter = ConstCounter::new(self.2.load(Relaxed));
+        counter.encode(encoder.encode_descriptor(self.0, self.1, None, counter.metric_type())?)
     }
 }
 
@@ -33,12 +28,22 @@ pub fn registry(
     auth: Arc<Auth>,
     connections: Arc<Connections>,
     loops_not_kept: Arc<AtomicU64>,
+    features_extracted: Arc<AtomicU64>,
 ) -> Registry {
     let mut r = Registry::default();
     r.register_collector(Box::new(engine));
     r.register_collector(Box::new(auth));
     r.register_collector(Box::new(connections));
-    r.register_collector(Box::new(LoopsNotKept(loops_not_kept)));
+    r.register_collector(Box::new(Count(
+        "loopd_loops_not_kept",
+        "Answers whose loop candidates could not be kept.",
+        loops_not_kept,
+    )));
+    r.register_collector(Box::new(Count(
+        "loopd_features_extracted",
+        "Images whose local features were extracted (admitted frames and queries, jobs).",
+        features_extracted,
+    )));
     r
 }
 

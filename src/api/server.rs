@@ -277,6 +277,7 @@ impl RunningServer {
             auth.clone(),
             connections.clone(),
             service.loops_not_kept.clone(),
+            service.verifier.extracted(),
         ));
         let state = Arc::new(AppState { service: service.clone(), auth: auth.clone(), jobs, metrics });
         let app = router(state, cfg.max_body_bytes).layer(tower_http::timeout::TimeoutLayer::with_status_code(

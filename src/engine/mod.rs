@@ -126,7 +126,9 @@ pub struct EngineInfo {
 }
 
 /// Counts a request as admitted until it is answered or dropped.
-struct Admission(Arc<EngineMetrics>);
+/// A place in the engine's queue ([`Engine::admit`]), held until the request's forward pass is
+/// answered or the request is dropped.
+pub struct Admission(Arc<EngineMetrics>);
 
 impl Drop for Admission {
     fn drop(&mut self) {
@@ -223,7 +225,10 @@ impl Engine {
         &self.cfg
     }
 
-    fn admit(&self) -> Result<Admission, EngineError> {
+    /// Takes a place in the queue, or refuses at once (overloaded): a caller that would do other
+    /// work on the request beside its forward pass (decoding, features) takes its place first, so
+    /// that a refused request costs nothing but this check.
+    pub fn admit(&self) -> Result<Admission, EngineError> {
         let before = self.metrics.queued.fetch_add(1, Relaxed);
         let admission = Admission(self.metrics.clone());
         if before as usize >= self.cfg.queue_capacity {
@@ -237,7 +242,16 @@ impl Engine {
     /// Dropping the future (a client gone, a gRPC deadline passed) before the forward pass costs
     /// no forward pass.
     pub async fn embed_image(&self, bytes: bytes::Bytes, variant: Variant) -> Result<Vec<f32>, EngineError> {
-        let admission = self.admit()?;
+        self.embed_admitted(self.admit()?, bytes, variant).await
+    }
+
+    /// [`Engine::embed_image`] in a place already taken with [`Engine::admit`].
+    pub async fn embed_admitted(
+        &self,
+        admission: Admission,
+        bytes: bytes::Bytes,
+        variant: Variant,
+    ) -> Result<Vec<f32>, EngineError> {
         let admitted = Instant::now();
         let input = {
             let _permit = self.decode.acquire().await.map_err(|_| EngineError::Stopped)?;

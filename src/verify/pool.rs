@@ -31,16 +31,23 @@ impl Default for VerifyConfig {
 pub struct Verifier {
     cfg: Arc<VerifyConfig>,
     slots: Arc<Semaphore>,
+    /// Images whose features were extracted (`loopd_features_extracted` in /metrics).
+    extracted: Arc<std::sync::atomic::AtomicU64>,
 }
 
 impl Verifier {
     pub fn new(cfg: VerifyConfig) -> Self {
         let slots = Arc::new(Semaphore::new(cfg.workers.max(1)));
-        Self { cfg: Arc::new(cfg), slots }
+        Self { cfg: Arc::new(cfg), slots, extracted: Default::default() }
     }
 
     pub fn config(&self) -> &VerifyConfig {
         &self.cfg
+    }
+
+    /// The count of images whose features were extracted.
+    pub fn extracted(&self) -> Arc<std::sync::atomic::AtomicU64> {
+        self.extracted.clone()
     }
 
     /// Runs `f` on a blocking thread once a worker slot is free.
@@ -58,6 +65,7 @@ impl Verifier {
     /// ORB features of an encoded image, capped to the stored size limit.
     pub async fn extract(&self, image: bytes::Bytes, limits: ImageLimits) -> Result<Features, VerifyError> {
         let cfg = self.cfg.clone();
+        self.extracted.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let mut f = self.run(move || from_image_bytes(&image, &limits, &cfg.features)).await??;
         let bytes = f.descriptor_bytes;
         let fit = self.cfg.max_feature_bytes.saturating_sub(Features::encoded_len(0, bytes))

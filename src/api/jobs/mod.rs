@@ -32,8 +32,17 @@ pub struct Jobs {
     store: Arc<Store>,
 }
 
+/// A job's number: `job-N-SECRET` (or `job-N`, ids given before the secret part) -> N.
 fn job_number(id: &str) -> u64 {
-    id.trim_start_matches("job-").parse().unwrap_or(0)
+    let n = id.trim_start_matches("job-");
+    n.split('-').next().unwrap_or(n).parse().unwrap_or(0)
+}
+
+/// A new job's id: its number (the order jobs were given in, for pruning) and 64 random bits, so
+/// that an id names nothing another caller can guess (a tenant does not learn how many jobs others
+/// ran, nor reach one by counting).
+fn job_id(n: u64) -> String {
+    format!("job-{n}-{:016x}", rand::random::<u64>())
 }
 
 impl Jobs {
@@ -124,7 +133,7 @@ impl Jobs {
             Some(n) => n,
             None => self.next.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1,
         };
-        let id = format!("job-{n}");
+        let id = job_id(n);
         let status = self.admit(&id, &session, seq.frames.len(), tenant.as_ref().map(|(name, _)| name.as_str()))?;
         let first = status.lock().clone();
         if let Err(e) = self.store.keep_job(&id, n, &record(&first), KEPT_JOBS).await {

@@ -406,8 +406,11 @@ impl LoopService {
             Content::Image(bytes) => bytes,
         };
         self.check_space(s)?;
+        // The engine's queue first: a refused image (overload) is neither decoded nor searched
+        // for features, so a refusal stays cheap while the model is busy.
+        let admission = self.engine.admit()?;
         let limits = self.engine.info().limits;
-        let embed = self.engine.embed_image(bytes.clone(), Variant::FULL);
+        let embed = self.engine.embed_admitted(admission, bytes.clone(), Variant::FULL);
         let extract = async {
             match features {
                 true => self.verifier.extract(bytes.clone(), limits).await.map_err(no_features),

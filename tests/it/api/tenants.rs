@@ -258,6 +258,18 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
     assert_eq!(listed, ["secret", "warehouse"]);
     let (st, j) = http.call("GET", &format!("/v1/jobs/{job_id}"), Some(&acme_key), None).await;
     assert_eq!((st, j["session_id"].as_str()), (200, Some("secret")), "{j}");
+    // A job id names nothing that can be counted to: its number and 64 random bits. The number
+    // alone, or with other bits, is not the job, even for its owner (issue #35).
+    let parts: Vec<&str> = job_id.split('-').collect();
+    assert!(
+        parts.len() == 3 && parts[1].parse::<u64>().is_ok() && parts[2].len() == 16,
+        "job id {job_id}: job-N-<16 hex digits>"
+    );
+    assert!(u64::from_str_radix(parts[2], 16).is_ok(), "{job_id}");
+    for guess in [format!("job-{}", parts[1]), format!("job-{}-{:016x}", parts[1], 0u64)] {
+        let (st, _) = http.call("GET", &format!("/v1/jobs/{guess}"), Some(&acme_key), None).await;
+        assert_eq!(st, 404, "a guessed id {guess} found job {job_id}");
+    }
     let (_, legacy) = http.call("GET", "/v1/sessions", Some(ADMIN), None).await;
     assert_eq!(legacy["sessions"].as_array().unwrap().len(), 1, "the admin sees the default tenant's: {legacy}");
 

@@ -81,6 +81,10 @@ async fn a_burst_of_64_clients_is_refused_fast_with_bounded_memory() {
     assert!(refused.len() > 100 && ok > 0, "a queue of 4 against 64 robots refuses most of the burst");
     assert!(p99 < Duration::from_millis(500), "refusals must be quick, p99 {p99:?}");
     assert!(peak - before < 1024.0, "RSS grew by {:.0} MiB in the burst (bound 1 GiB)", peak - before);
+    // A refused frame is neither decoded for its features nor searched: only the admitted ones
+    // (and the warm-up frame) were.
+    let extracted = features_extracted(&server).await;
+    assert_eq!(extracted, ok as u64 + 1, "features extracted for {extracted} images, {ok} admitted in the burst");
 
     // After the burst: normal service, and the memory back under the bound.
     tokio::time::sleep(Duration::from_millis(500)).await;
@@ -105,6 +109,13 @@ async fn closed_within(s: &mut TcpStream, limit: Duration) -> Duration {
             Err(_) => panic!("connection still open after {limit:?}"),
         }
     }
+}
+
+/// `loopd_features_extracted` in `/metrics`: images whose local features were extracted.
+async fn features_extracted(server: &Loopd) -> u64 {
+    let metrics = reqwest::get(format!("{}/metrics", server.http_url())).await.unwrap().text().await.unwrap();
+    let line = metrics.lines().find_map(|l| l.strip_prefix("loopd_features_extracted_total "));
+    line.expect("loopd_features_extracted_total in /metrics").parse().unwrap()
 }
 
 /// The server's open HTTP connections (`/metrics`), this request's own included; None when the
