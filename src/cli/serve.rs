@@ -38,6 +38,12 @@ pub struct ServeArgs {
     /// warmed up at start; auto: on a CUDA device only (docs/performance.md "GPU figures").
     #[arg(long, env = "LOOPD_BATCH_BUCKETS", value_enum, default_value = "auto")]
     pub batch_buckets: Switch,
+    /// While two or more tenants have work for the model, each batch is cut to what runs in this
+    /// many milliseconds (measured per image), so that one tenant's frame never waits behind a
+    /// long batch of another's (a batch of 32 takes seconds on a CPU); a tenant alone keeps whole
+    /// batches. 0: off.
+    #[arg(long, env = "LOOPD_SHARED_BATCH_MS", default_value_t = 100)]
+    pub shared_batch_ms: u64,
     /// Frames admitted at once (decoding, queued, running); beyond it: RESOURCE_EXHAUSTED / 429.
     #[arg(long, env = "LOOPD_QUEUE_CAPACITY", default_value_t = 256)]
     pub queue_capacity: usize,
@@ -232,6 +238,8 @@ impl ServeArgs {
                     Switch::On => Some(true),
                     Switch::Off => Some(false),
                 },
+                shared_batch_time: Duration::from_millis(self.shared_batch_ms),
+                ..defaults
             },
             limits: ImageLimits {
                 max_bytes: self.max_image_bytes,

@@ -4,6 +4,12 @@
 //! from the lanes by deficit round robin, each lane's share of a batch in proportion to its
 //! weight: a tenant that keeps the queue full delays another's frame by about one batch, not by
 //! its whole backlog. A lane alone gets whole batches, as one queue would.
+//!
+//! One batch is also the wait itself: on a CPU a batch of 32 takes seconds. While more than one
+//! lane has sent work within `share_window`, batches are cut to what runs in `shared_batch_time`
+//! (from the measured time per image), so that a tenant's frame waits for short batches of the
+//! others, not for a long one; a lane alone again gets whole batches once the others are gone
+//! that long. On a GPU a whole batch runs within the time, so nothing changes there.
 use super::metrics::EngineMetrics;
 use super::{EngineConfig, EngineError, Lane};
 use crate::model::network::Variant;
@@ -37,6 +43,9 @@ pub(super) struct Fair {
     lanes: HashMap<Arc<str>, LaneQueue>,
     order: VecDeque<Arc<str>>,
     queued: usize,
+    /// The lane whose turn a full batch cut short: the next batch goes on with it, without a
+    /// new quantum, so that weights hold with batches smaller than a lane's weight.
+    turn: Option<Arc<str>>,
 }
 
 impl Fair {
@@ -59,15 +68,17 @@ impl Fair {
         self.queued
     }
 
-    /// Up to `max` jobs by deficit round robin: each visit adds the lane's weight to its
-    /// deficit and takes that many of its jobs (fewer if the batch fills; the rest of its
-    /// deficit stays for its next visit). A lane that empties leaves the round with no credit.
+    /// Up to `max` jobs by deficit round robin: each turn adds the lane's weight to its deficit
+    /// and takes that many of its jobs; a batch that fills mid-turn leaves the turn to the next
+    /// batch. A lane that empties leaves the round with no credit.
     pub(super) fn take(&mut self, max: usize) -> Vec<Job> {
         let mut batch = Vec::new();
         while batch.len() < max {
             let Some(name) = self.order.pop_front() else { break };
             let Some(lane) = self.lanes.get_mut(&name) else { continue };
-            lane.deficit += lane.weight;
+            if self.turn.take().as_ref() != Some(&name) {
+                lane.deficit += lane.weight;
+            }
             while lane.deficit > 0 && batch.len() < max {
                 let Some(job) = lane.jobs.pop_front() else { break };
                 batch.push(job);
@@ -76,6 +87,10 @@ impl Fair {
             }
             if lane.jobs.is_empty() {
                 self.lanes.remove(&name);
+            } else if lane.deficit > 0 {
+                // The batch is full mid-turn: the next one goes on with this lane.
+                self.order.push_front(name.clone());
+                self.turn = Some(name);
             } else {
                 self.order.push_back(name);
             }
@@ -84,13 +99,53 @@ impl Fair {
     }
 }
 
+/// The lanes that sent work lately, and the measured forward time per image: how large a batch
+/// may be while lanes share the model (see the module's documentation).
+struct Sharing {
+    seen: HashMap<Arc<str>, Instant>,
+    /// Seconds per image, a moving average over recent batches (0 until the first).
+    per_image: f64,
+}
+
+impl Sharing {
+    fn saw(&mut self, lane: &Arc<str>) {
+        match self.seen.get_mut(lane) {
+            Some(t) => *t = Instant::now(),
+            None => {
+                self.seen.insert(lane.clone(), Instant::now());
+            }
+        }
+    }
+
+    fn measured(&mut self, seconds: f64, images: usize) {
+        let x = seconds / images.max(1) as f64;
+        self.per_image = if self.per_image == 0.0 { x } else { 0.8 * self.per_image + 0.2 * x };
+    }
+
+    /// `max_batch` for a lane alone; while two or more have work queued or sent some within the
+    /// window, what runs in `shared_batch_time` (at least one image).
+    fn cap(&mut self, cfg: &EngineConfig, fair: &Fair) -> usize {
+        let now = Instant::now();
+        self.seen.retain(|lane, t| now.duration_since(*t) < cfg.share_window || fair.lanes.contains_key(lane));
+        if self.seen.len() < 2 || self.per_image <= 0.0 || cfg.shared_batch_time.is_zero() {
+            return cfg.max_batch;
+        }
+        ((cfg.shared_batch_time.as_secs_f64() / self.per_image) as usize).clamp(1, cfg.max_batch)
+    }
+}
+
 pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: std::sync::Arc<EngineMetrics>) {
     let mut fair = Fair::default();
+    let mut sharing = Sharing { seen: HashMap::new(), per_image: 0.0 };
     let bucket_max = if cfg.batch_buckets == Some(true) { Some(cfg.max_batch) } else { None };
+    let push = |fair: &mut Fair, job: Job, sharing: &mut Sharing| {
+        sharing.saw(&job.lane.name);
+        fair.push(job);
+    };
     loop {
         if fair.len() == 0 {
             match rx.recv() {
-                Ok(job) => fair.push(job),
+                Ok(job) => push(&mut fair, job, &mut sharing),
                 Err(_) => return, // every sender gone: the engine was dropped
             }
         }
@@ -99,20 +154,24 @@ pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: s
         loop {
             match rx.try_recv() {
                 Ok(job) => {
-                    fair.push(job);
+                    push(&mut fair, job, &mut sharing);
                     continue;
                 }
                 Err(TryRecvError::Empty) | Err(TryRecvError::Disconnected) => {}
             }
-            if fair.len() >= cfg.max_batch {
+            if fair.len() >= sharing.cap(&cfg, &fair) {
                 break;
             }
             match rx.recv_timeout(window_end.saturating_duration_since(Instant::now())) {
-                Ok(job) => fair.push(job),
+                Ok(job) => push(&mut fair, job, &mut sharing),
                 Err(RecvTimeoutError::Timeout) | Err(RecvTimeoutError::Disconnected) => break,
             }
         }
-        let mut jobs = fair.take(cfg.max_batch);
+        let cap = sharing.cap(&cfg, &fair);
+        if cap < cfg.max_batch {
+            metrics.shared_batches.fetch_add(1, Relaxed);
+        }
+        let mut jobs = fair.take(cap);
         // A caller that gave up (client gone, gRPC deadline passed) costs no forward pass.
         let before = jobs.len();
         jobs.retain(|j| !j.reply.is_closed());
@@ -123,7 +182,9 @@ pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: s
             let (group, rest): (Vec<Job>, Vec<Job>) =
                 jobs.into_iter().partition(|j| j.input.size() == size && j.variant == variant);
             jobs = rest;
+            let (started, n) = (Instant::now(), group.len());
             forward(&model, group, variant, &metrics, bucket_max);
+            sharing.measured(started.elapsed().as_secs_f64(), n);
         }
     }
 }

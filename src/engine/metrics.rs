@@ -74,6 +74,8 @@ pub struct EngineMetrics {
     pub images: AtomicU64,
     /// Zero inputs added to fill batches up to their bucket (`EngineConfig::batch_buckets`).
     pub padded: AtomicU64,
+    /// Batches cut to the shared batch time because several lanes had work (`shared_batch_time`).
+    pub shared_batches: AtomicU64,
     pub rejected_overload: AtomicU64,
     pub cancelled: AtomicU64,
     pub failed: AtomicU64,
@@ -89,6 +91,7 @@ impl Default for EngineMetrics {
             forward_seconds: Histogram::new(SECONDS_BOUNDS),
             images: AtomicU64::new(0),
             padded: AtomicU64::new(0),
+            shared_batches: AtomicU64::new(0),
             rejected_overload: AtomicU64::new(0),
             cancelled: AtomicU64::new(0),
             failed: AtomicU64::new(0),
@@ -103,6 +106,11 @@ impl Collector for EngineMetrics {
         for (name, help, v) in [
             ("loopd_engine_images", "Images embedded.", &self.images),
             ("loopd_engine_padded", "Zero inputs that filled batches up to their bucket size.", &self.padded),
+            (
+                "loopd_engine_shared_batches",
+                "Batches cut to --shared-batch-ms because several tenants had work.",
+                &self.shared_batches,
+            ),
             ("loopd_engine_rejected", "Requests refused: queue full.", &self.rejected_overload),
             ("loopd_engine_cancelled", "Requests dropped by their caller before the forward pass.", &self.cancelled),
             ("loopd_engine_failed", "Requests whose forward pass failed.", &self.failed),

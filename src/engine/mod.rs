@@ -70,6 +70,13 @@ pub struct EngineConfig {
     /// this network on an H200, and a dynamic batcher meets every size from 1 to `max_batch`;
     /// padding costs the GPU little at these sizes and nothing on the CPU, where it stays off.
     pub batch_buckets: Option<bool>,
+    /// While two or more lanes (tenants) sent work within `share_window`, each batch is cut to
+    /// what runs in this time (measured per image; at least one image), so that one tenant's
+    /// frame never waits for a long batch of another's (`--shared-batch-ms`; zero: off). A lane
+    /// alone keeps whole batches.
+    pub shared_batch_time: Duration,
+    /// How long a lane counts as sharing the model after its last request.
+    pub share_window: Duration,
 }
 
 impl Default for EngineConfig {
@@ -81,6 +88,8 @@ impl Default for EngineConfig {
             decode_workers: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2),
             warm_up: true,
             batch_buckets: None,
+            shared_batch_time: Duration::from_millis(100),
+            share_window: Duration::from_secs(1),
         }
     }
 }

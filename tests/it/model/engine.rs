@@ -239,15 +239,22 @@ fn lane(name: &str, weight: u32) -> loopd::engine::Lane {
     loopd::engine::Lane { name: name.into(), weight }
 }
 
-fn fair_engine() -> Engine {
+/// Batches of 4; `shared_batch_ms` (0: whole batches while lanes share, as in the tests of the
+/// shares themselves).
+fn fair_engine_cut(shared_batch_ms: u64) -> Engine {
     small_engine(EngineConfig {
         max_batch: 4,
         max_delay: Duration::from_millis(1),
         queue_capacity: 512,
         warm_up: false,
         batch_buckets: Some(false),
+        shared_batch_time: Duration::from_millis(shared_batch_ms),
         ..Default::default()
     })
+}
+
+fn fair_engine() -> Engine {
+    fair_engine_cut(0)
 }
 
 /// A lane (tenant) that fills the queue delays another lane's request by about one batch, not
@@ -269,26 +276,84 @@ async fn a_lane_that_floods_the_engine_delays_another_by_about_one_batch() {
 }
 
 /// Lanes with work share each batch in proportion to their weights (3:1 here); a lane alone
-/// fills whole batches.
+/// fills whole batches. With batches cut to one image while lanes share (`shared_batch_ms`),
+/// the weights hold across batches (a lane's turn goes on in the next batch).
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn lanes_share_the_batches_by_weight_and_a_lane_alone_fills_them() {
-    let engine = fair_engine();
-    let done = std::sync::Arc::new(parking_lot::Mutex::new(Vec::new()));
-    let mut tasks = Vec::new();
-    for _ in 0..40 {
-        tasks.extend(flood(&engine, lane("heavy", 3), "heavy", 1, &done));
-        tasks.extend(flood(&engine, lane("light", 1), "light", 1, &done));
+    for shared_batch_ms in [0, 1] {
+        let engine = fair_engine_cut(shared_batch_ms);
+        let done = std::sync::Arc::new(parking_lot::Mutex::new(Vec::new()));
+        let mut tasks = Vec::new();
+        for _ in 0..40 {
+            tasks.extend(flood(&engine, lane("heavy", 3), "heavy", 1, &done));
+            tasks.extend(flood(&engine, lane("light", 1), "light", 1, &done));
+        }
+        for t in tasks {
+            t.await.unwrap();
+        }
+        let order = done.lock().clone();
+        // Past the first two batches (formed while the requests were still arriving), while
+        // both lanes have work: 32 places.
+        let heavy = order[8..40].iter().filter(|t| **t == "heavy").count();
+        assert!(
+            (20..=28).contains(&heavy),
+            "shared batch {shared_batch_ms} ms: heavy (weight 3) got {heavy} of 32 places, light the rest: {order:?}"
+        );
+        let m = engine.metrics();
+        assert_eq!(m.images.load(std::sync::atomic::Ordering::Relaxed), 80);
+        if shared_batch_ms == 0 {
+            // Once heavy has none left, light runs alone, in full batches.
+            assert!(m.batch_size.sum() / m.batch_size.count() as f64 >= 3.0, "batches were not kept full");
+        }
     }
-    for t in tasks {
+}
+
+/// While two lanes have work, batches are cut to what runs in the shared batch time (here so
+/// short that one image is a batch): a closed-loop caller of one lane waits for at most about
+/// one short batch of the flooding lane's, not for a whole batch of 8. Once it has been gone for
+/// the share window, the flooding lane runs whole batches again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn while_lanes_share_the_model_batches_are_cut_to_the_shared_time() {
+    use std::sync::atomic::Ordering::Relaxed;
+    let engine = small_engine(EngineConfig {
+        max_batch: 8,
+        max_delay: Duration::from_millis(1),
+        queue_capacity: 512,
+        warm_up: false,
+        batch_buckets: Some(false),
+        shared_batch_time: Duration::from_nanos(1),
+        share_window: Duration::from_millis(300),
+        ..Default::default()
+    });
+    let done = std::sync::Arc::new(parking_lot::Mutex::new(Vec::new()));
+    let mut tasks = flood(&engine, lane("bulk", 1), "bulk", 200, &done);
+    queued_at_least(&engine, 150).await;
+    // The other lane: one request at a time; how many images the engine ran while each waited
+    // (its own included).
+    let images = || engine.metrics().images.load(Relaxed);
+    let mut waited = Vec::new();
+    for _ in 0..5 {
+        let before = images();
+        for t in flood(&engine, lane("other", 1), "other", 1, &done) {
+            t.await.unwrap();
+        }
+        waited.push(images() - before);
+    }
+    // The first may meet a whole batch formed while bulk was alone; the others short ones only.
+    assert!(waited[1..].iter().all(|&n| n <= 4), "images run while each of other's requests waited: {waited:?}");
+    assert!(engine.metrics().shared_batches.load(Relaxed) > 0);
+    for t in tasks.drain(..) {
         t.await.unwrap();
     }
-    let order = done.lock().clone();
-    // Past the first two batches (formed while the requests were still arriving), while both
-    // lanes have work: 8 batches of 4.
-    let heavy = order[8..40].iter().filter(|t| **t == "heavy").count();
-    assert!((20..=28).contains(&heavy), "heavy (weight 3) got {heavy} of 32 places, light the rest: {order:?}");
-    // Once heavy has none left, light runs alone, in full batches.
+    // Alone again past the window: whole batches.
+    tokio::time::sleep(Duration::from_millis(400)).await;
     let m = engine.metrics();
-    assert_eq!(m.images.load(std::sync::atomic::Ordering::Relaxed), 80);
-    assert!(m.batch_size.sum() / m.batch_size.count() as f64 >= 3.0, "batches were not kept full");
+    let (count0, sum0) = (m.batch_size.count(), m.batch_size.sum());
+    let shared0 = m.shared_batches.load(Relaxed);
+    for t in flood(&engine, lane("bulk", 1), "bulk", 64, &done) {
+        t.await.unwrap();
+    }
+    let mean = (m.batch_size.sum() - sum0) / (m.batch_size.count() - count0) as f64;
+    assert!(mean >= 4.0, "a lane alone ran batches of {mean:.1} on average");
+    assert_eq!(m.shared_batches.load(Relaxed), shared0, "batches were cut with one lane alone");
 }
