@@ -624,6 +624,31 @@ async fn jobs_wait_for_their_tenants_rate_and_leave_a_slot_for_another_tenant() 
         metrics.lines().find(|l| l.starts_with(name)).and_then(|l| l.rsplit(' ').next()?.parse::<u64>().ok())
     };
     assert_eq!(sample("loopd_tenant_frames_added_total{tenant=\"bulk\"}"), Some(n as u64));
+
+    // A stream is paced the same way: 16 frames sent at once on one gRPC stream, each takes a
+    // token; those beyond the rate are refused in the stream (RESOURCE_EXHAUSTED), never stored.
+    let dim = server.service.engine.info().dim;
+    let mut g = grpc(server.grpc_addr, Some(&keys[0])).await;
+    tokio::time::sleep(Duration::from_secs(1)).await; // the bucket full again: 2 tokens
+    let sent = std::time::Instant::now();
+    let frames: Vec<pb::AddFrameRequest> = (0..16).map(|i| descriptor_frame("map", dim, 1000 + i)).collect();
+    let mut answers = g.stream_frames(tokio_stream::iter(frames)).await.unwrap().into_inner();
+    let (mut acked, mut refused) = (0usize, 0usize);
+    while let Some(a) = answers.message().await.unwrap() {
+        match a.error_code {
+            0 => acked += 1,
+            c => {
+                assert_eq!(c, tonic::Code::ResourceExhausted as i32, "{a:?}");
+                refused += 1;
+            }
+        }
+    }
+    let t = sent.elapsed().as_secs_f64();
+    assert_eq!(acked + refused, 16);
+    assert!(acked as f64 <= rate * t + burst, "{acked} stream frames stored in {t:.2} s at 2/s");
+    assert!(refused > 0, "16 frames at once at 2/s: none refused");
+    let (_, map) = http.call("GET", "/v1/sessions/map", Some(&keys[0]), None).await;
+    assert_eq!(map["frames"].as_u64(), Some((n + acked) as u64), "{map}");
     server.shutdown().await.unwrap();
 }
 
