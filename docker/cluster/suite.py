@@ -666,9 +666,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         print(f"     {old} -> {new}; {len(load.acked)} acknowledged, errors {load.errors}, writable "
               f"{writable_for:.1f} s after the cut, gap {gap:.1f} s", flush=True)
 
-    @check("T4c the primary frozen (docker pause) for 20 s: a new primary takes the writes; thawed, the old "
-           "one is demoted within Patroni's ttl and no loopd node writes to it; no loss", "T4c")
-    def _():
+    def t4c():
         with cluster.grpc() as c:
             c.create_session("t4c")
         old = cluster.leader()
@@ -704,6 +702,17 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         load.verify(cluster, "T4c after it rejoined")
         print(f"     {old} -> {new}; {len(load.acked)} acknowledged, errors {load.errors}, gap {gap:.1f} s, "
               f"writable {writable_after:.1f} s after the thaw", flush=True)
+
+    @check("T4c the primary frozen (docker pause) for 20 s: a new primary takes the writes; thawed, the old "
+           "one is demoted within Patroni's ttl and no loopd node writes to it; no loss", "T4c")
+    def _():
+        try:
+            t4c()
+        except AssertionError:
+            for n in NODES:  # what each node said meanwhile
+                lines = [x for x in logs(cluster.container(n)).splitlines() if "WARN" in x or "ERROR" in x]
+                print(f"---- {n} ----\n" + "\n".join(x[:400] for x in lines[-25:]), flush=True)
+            raise
 
     @check("T7 both standbys killed: writes refused at once (UNAVAILABLE, not ready), none acknowledged; "
            "writes again once a standby streams", "T7")
