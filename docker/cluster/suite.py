@@ -572,7 +572,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
                                                           timeout=30)
                 assert ("loopd-stale", "1") in call.trailing_metadata() or ("loopd-stale", "1") in call.initial_metadata()
             time.sleep(3)
-            sh("docker", "network", "connect", network, cluster.container("loopd1"))
+            sh("docker", "network", "connect", "--alias", "loopd1", network, cluster.container("loopd1"))
             until("loopd1 back in the balancer", lambda: cluster.balanced()["grpc_ready/loopd1"] == "UP", 30)
             time.sleep(2)
         load.verify(cluster, "T3")
@@ -659,8 +659,13 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         figures.append(("  ... write gap, s", f"{gap:.1f}"))
         assert both <= 10, f"two writable primaries for {both:.1f} s (Patroni's ttl is 10 s)"
         assert gap < 30, f"writes stalled {gap:.1f} s"
+        # Each network with the names compose gave it there: without its service name on the
+        # data network the loopd nodes cannot resolve it, and once it is the primary again (T8's
+        # restart may elect it) no node reaches the database (CI's failed run of 102610e).
         sh("docker", "network", "connect", "--alias", f"{old}-repl", cut_from[0], cluster.container(old))
-        sh("docker", "network", "connect", cut_from[1], cluster.container(old))
+        sh("docker", "network", "connect", "--alias", old, cut_from[1], cluster.container(old))
+        resolved = sh("docker", "exec", cluster.container("loopd1"), "getent", "hosts", old, check=False)
+        assert resolved, f"{old} is not resolvable from loopd1 after it rejoined the data network"
         until("the old primary back as a standby", cluster.healthy, 120, every=1)
         load.verify(cluster, "T4b after it rejoined")
         print(f"     {old} -> {new}; {len(load.acked)} acknowledged, errors {load.errors}, writable "
@@ -774,11 +779,11 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
         cluster.compose("restart", "-t", "3")
         cluster.ips.clear()
         until("a primary with a synchronous standby", cluster.healthy, 180, every=1)
-        # CI's run of 102610e gave up on loopd1 after 240 s, under the load of the tests beside
-        # the suite, without saying why (it passed here alone and beside two busy cores, 20-27 s):
-        # more time, and wait_node now prints the node's state, health probes and log.
+        # CI's run of 102610e gave up here: T4b had put its old primary back on the data network
+        # without its name, so once T8's restart elected that server again no node could resolve
+        # the primary (fixed in T4b, which now checks the name). wait_node says why it gives up.
         for n in NODES:
-            cluster.wait_node(n, 420)
+            cluster.wait_node(n, 240)
         cluster.ips.clear()
 
         def written():
