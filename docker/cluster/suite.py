@@ -153,16 +153,21 @@ class Cluster:
                   self.container(pg), "psql", "-h", "127.0.0.1", "-U", "postgres", "-d", "loopd", "-tAXc", query,
                   timeout=timeout)
 
+    def not_writable(self, pg: str) -> bool:
+        """In recovery, or not answering (down, starting, restarting, cut off): not writable. Asked
+        inside its container, so a network cut does not stop the question."""
+        try:
+            return self.sql(pg, "SELECT pg_is_in_recovery()", timeout=5) != "f"
+        except Exception:  # noqa: BLE001
+            return True
+
     def writable(self) -> list[str]:
         """The PostgreSQL servers that are up and not in recovery now."""
         out: list[str] = []
 
         def ask(pg):
-            try:
-                if self.sql(pg, "SELECT pg_is_in_recovery()", timeout=5) == "f":
-                    out.append(pg)
-            except Exception:  # noqa: BLE001 (down, starting, cut off: not writable)
-                pass
+            if not self.not_writable(pg):
+                out.append(pg)
         threads = [threading.Thread(target=ask, args=(pg,)) for pg in PG]
         for t in threads:
             t.start()
@@ -641,13 +646,7 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
                 sh("docker", "network", "disconnect", network, cluster.container(old))
             new = until("a new leader", lambda: cluster.leader_other_than(old), 90)
             elected = time.monotonic()
-
-            def demoted():  # asked inside its container: the cut does not stop docker exec
-                try:
-                    return cluster.sql(old, "SELECT pg_is_in_recovery()", timeout=5) != "f"
-                except Exception:  # noqa: BLE001 (stopped or restarting: not writable)
-                    return True
-            until("the cut-off primary stops taking writes", demoted, 90, every=0.5)
+            until("the cut-off primary stops taking writes", lambda: cluster.not_writable(old), 90, every=0.5)
             writable_for = time.monotonic() - cut
             until("writes acknowledged again", lambda: load.ack_times and load.ack_times[-1] > cut + 0.5, 90)
             time.sleep(3)
@@ -686,13 +685,8 @@ def run_checks(cluster: Cluster) -> None:  # noqa: C901 (one story, told in orde
             finally:
                 sh("docker", "unpause", cluster.container(old))
             thawed = time.monotonic()
-
-            def demoted():  # a thawed primary that lost its leader key restarts as a standby
-                try:
-                    return cluster.sql(old, "SELECT pg_is_in_recovery()", timeout=5) != "f"
-                except Exception:  # noqa: BLE001 (restarting: not writable)
-                    return True
-            until("the thawed primary demoted", demoted, 60, every=0.5)
+            # A thawed primary that lost its leader key restarts as a standby.
+            until("the thawed primary demoted", lambda: cluster.not_writable(old), 60, every=0.5)
             writable_after = time.monotonic() - thawed
             # The watcher may see two writable servers only in this window (the issue's bound: ttl).
             watch.allowed.append((thawed - 1, thawed + writable_after + 2))

@@ -109,12 +109,7 @@ struct Sharing {
 
 impl Sharing {
     fn saw(&mut self, lane: &Arc<str>) {
-        match self.seen.get_mut(lane) {
-            Some(t) => *t = Instant::now(),
-            None => {
-                self.seen.insert(lane.clone(), Instant::now());
-            }
-        }
+        self.seen.insert(lane.clone(), Instant::now());
     }
 
     fn measured(&mut self, seconds: f64, images: usize) {
