@@ -4,6 +4,7 @@
 //! rows it does not cover yet. The graph holds each row reduced to its first `dims` values,
 //! renormalised: loopd's whitened descriptors are PCA-ordered, so that is a PCA reduction. Its
 //! candidates are re-scored on the full rows, so answers carry exact scores in exact order.
+use parking_lot::{Condvar, Mutex, RwLock};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::io::{Read, Write};
@@ -94,10 +95,55 @@ impl Default for GraphParams {
 /// Rows a graph is built from on one thread before more join.
 const SERIAL_ROWS: usize = 10_000;
 
+/// usearch contexts reserved for searches, beyond one per adding thread. More concurrent
+/// searches wait for one to be free ([`Contexts`]).
+const SEARCH_CONTEXTS: usize = 16;
+
+/// usearch runs each call on one of the per-thread contexts reserved with the index, and a call
+/// that finds none free fails ("Reserve capacity ahead of searches!"). This counts them, so that
+/// no more calls enter the index at once than it has contexts: the others wait.
+struct Contexts {
+    free: Mutex<usize>,
+    freed: Condvar,
+}
+
+struct Context<'a>(&'a Contexts);
+
+impl Contexts {
+    fn new(n: usize) -> Self {
+        Self { free: Mutex::new(n), freed: Condvar::new() }
+    }
+
+    fn take(&self) -> Context<'_> {
+        let mut free = self.free.lock();
+        while *free == 0 {
+            self.freed.wait(&mut free);
+        }
+        *free -= 1;
+        Context(self)
+    }
+}
+
+impl Drop for Context<'_> {
+    fn drop(&mut self) {
+        *self.0.free.lock() += 1;
+        self.0.freed.notify_one();
+    }
+}
+
 /// One session's graph. Rows `0..covered()` are in it; only the store's indexer adds (in row
 /// order), searches only read.
 pub struct Graph {
-    index: Index,
+    /// usearch's `reserve` reallocates the nodes, contexts and vector table that additions and
+    /// searches read, and must not run beside them (its documentation: "no update or search
+    /// operations should be running during this operation"); growing the graph while a query
+    /// searched it crashed the server (SIGSEGV in CI). Growing takes this lock for writing,
+    /// every other call for reading.
+    index: RwLock<Index>,
+    /// Calls inside the index at once, at most the contexts it reserved.
+    contexts: Contexts,
+    /// How many contexts the index reserves.
+    context_count: usize,
     dims: usize,
     covered: AtomicUsize,
     params: GraphParams,
@@ -116,7 +162,19 @@ impl Graph {
             multi: false,
         };
         let index = Index::new(&options).map_err(|e| format!("creating the approximate index: {e}"))?;
-        Ok(Self { index, dims, covered: AtomicUsize::new(0), params })
+        let context_count = params.threads.max(1) + SEARCH_CONTEXTS;
+        // Contexts from the start: a search of the empty graph needs one too.
+        index
+            .reserve_capacity_and_threads(1024, context_count)
+            .map_err(|e| format!("reserving the approximate index: {e}"))?;
+        Ok(Self {
+            index: RwLock::new(index),
+            contexts: Contexts::new(context_count),
+            context_count,
+            dims,
+            covered: AtomicUsize::new(0),
+            params,
+        })
     }
 
     pub fn dims(&self) -> usize {
@@ -125,7 +183,7 @@ impl Graph {
 
     /// Changes the search-time settings (expansion, candidates per result).
     pub fn tune(&mut self, expansion_search: usize, candidates_per_result: usize) {
-        self.index.change_expansion_search(expansion_search);
+        self.index.get_mut().change_expansion_search(expansion_search);
         self.params.expansion_search = expansion_search;
         self.params.candidates_per_result = candidates_per_result;
     }
@@ -140,7 +198,7 @@ impl Graph {
     }
 
     pub fn memory_bytes(&self) -> usize {
-        self.index.memory_usage()
+        self.index.read().memory_usage()
     }
 
     /// The graph's view of a unit row: its first `dims` values, renormalised.
@@ -170,21 +228,25 @@ impl Graph {
         // threads lost 1.3% of recall@5 in a one-off probe); one thread until it has grown.
         let threads = if start < SERIAL_ROWS { 1 } else { self.params.threads.clamp(1, n.max(1)) };
         let want = start + n;
-        if self.index.capacity() < want {
-            // Grow geometrically: usearch copies its slots on each reserve.
-            let capacity = want.max(self.index.capacity() * 3 / 2).max(1024);
+        let capacity = self.index.read().capacity();
+        if capacity < want {
+            // Grow geometrically: usearch copies its slots on each reserve. Alone in the index.
+            let capacity = want.max(capacity * 3 / 2).max(1024);
             self.index
-                .reserve_capacity_and_threads(capacity, threads.max(self.params.threads))
+                .write()
+                .reserve_capacity_and_threads(capacity, self.context_count)
                 .map_err(|e| format!("reserving the approximate index: {e}"))?;
         }
+        let index = self.index.read();
         let failed = std::sync::Mutex::new(None);
         std::thread::scope(|s| {
             for t in 0..threads {
-                let failed = &failed;
+                let (failed, index) = (&failed, &*index);
                 s.spawn(move || {
+                    let _context = self.contexts.take();
                     for i in (t..n).step_by(threads) {
                         let row = &reduced[i * self.dims..(i + 1) * self.dims];
-                        if let Err(e) = self.index.add((start + i) as u64, row) {
+                        if let Err(e) = index.add((start + i) as u64, row) {
                             *failed.lock().unwrap_or_else(|p| p.into_inner()) = Some(e.to_string());
                             return;
                         }
@@ -203,8 +265,9 @@ impl Graph {
     /// by the graph's (reduced, f16) scores.
     pub fn search(&self, query: &[f32], count: usize, allow: impl Fn(usize) -> bool) -> Result<Vec<usize>, String> {
         let covered = self.covered();
-        let found = self
-            .index
+        let index = self.index.read();
+        let _context = self.contexts.take();
+        let found = index
             .filtered_search(query, count, |key| (key as usize) < covered && allow(key as usize))
             .map_err(|e| format!("searching the approximate index: {e}"))?;
         Ok(found.keys.into_iter().map(|k| k as usize).collect())
@@ -254,7 +317,7 @@ impl Graph {
         let rows = self.covered();
         let tmp = path.with_extension("usearch.tmp");
         let tmp_str = tmp.to_str().ok_or_else(|| format!("{}: not a UTF-8 path", tmp.display()))?;
-        self.index.save(tmp_str).map_err(|e| format!("saving the approximate index: {e}"))?;
+        self.index.read().save(tmp_str).map_err(|e| format!("saving the approximate index: {e}"))?;
         std::fs::File::open(&tmp).and_then(|f| f.sync_all()).map_err(|e| format!("{}: {e}", tmp.display()))?;
         let record = SavedGraph {
             rows,
@@ -281,7 +344,7 @@ impl Graph {
     pub fn load(path: &Path, row_dim: usize, params: GraphParams, rows_held: usize) -> Result<Self, String> {
         let json = std::fs::read(record_path(path)).map_err(|e| format!("no record beside the graph file: {e}"))?;
         let saved: SavedGraph = serde_json::from_slice(&json).map_err(|e| format!("unreadable record: {e}"))?;
-        let graph = Self::new(row_dim, params)?;
+        let mut graph = Self::new(row_dim, params)?;
         if (saved.dims, saved.row_dim, saved.connectivity) != (graph.dims, row_dim, params.connectivity) {
             return Err(format!(
                 "saved for {}-d of {}-d rows, connectivity {}; this server wants {}-d of {row_dim}-d, connectivity {}",
@@ -296,16 +359,22 @@ impl Graph {
             return Err(format!("checksum mismatch (file {sha}, record {})", saved.sha256));
         }
         let path_str = path.to_str().ok_or_else(|| format!("{}: not a UTF-8 path", path.display()))?;
-        graph.index.load(path_str).map_err(|e| format!("loading: {e}"))?;
-        if graph.index.size() != saved.rows || graph.index.dimensions() != graph.dims {
+        let context_count = graph.context_count;
+        let index = graph.index.get_mut();
+        index.load(path_str).map_err(|e| format!("loading: {e}"))?;
+        if index.size() != saved.rows || index.dimensions() != graph.dims {
             return Err(format!(
                 "holds {} rows of {}-d; its record says {}",
-                graph.index.size(),
-                graph.index.dimensions(),
+                index.size(),
+                index.dimensions(),
                 saved.rows
             ));
         }
-        graph.index.change_expansion_search(params.expansion_search);
+        // Loading sizes the contexts by the machine's threads; this graph counts its own.
+        index
+            .reserve_capacity_and_threads(index.capacity().max(saved.rows).max(1024), context_count)
+            .map_err(|e| format!("reserving the approximate index: {e}"))?;
+        index.change_expansion_search(params.expansion_search);
         graph.covered.store(saved.rows, Ordering::Release);
         Ok(graph)
     }
@@ -313,7 +382,7 @@ impl Graph {
     /// The graph's stored (reduced, f16) values of a row, if it holds it.
     pub fn stored(&self, row: usize) -> Option<Vec<f32>> {
         let mut out = vec![0f32; self.dims];
-        match self.index.get(row as u64, &mut out) {
+        match self.index.read().get(row as u64, &mut out) {
             Ok(1) => Some(out),
             _ => None,
         }

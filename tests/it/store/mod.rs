@@ -1,2 +1,3 @@
+mod graph;
 mod search_pool;
 mod sessions;

@@ -1,0 +1,88 @@
+//! The approximate index under concurrency: the store's indexer grows a session's graph while
+//! queries search it. usearch must not reserve (reallocate) beside a search, and enters each call
+//! on one of a fixed set of contexts; CI's test binary died with SIGSEGV while both ran.
+use crate::common::*;
+use loopd::index::graph::{Graph, GraphParams};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+/// Every Nordland image (summer, then winter) as a unit row of its raw pixels.
+fn nordland_rows() -> (Vec<Vec<f32>>, usize) {
+    let mut rows = Vec::new();
+    for season in ["summer", "winter"] {
+        let dir = data(&format!("nordland-64x32/{season}"));
+        let mut files: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).collect();
+        files.sort();
+        for f in files {
+            let img = image::open(&f).unwrap().to_rgb8();
+            let mut v: Vec<f32> = img.as_raw().iter().map(|&b| b as f32 / 255.0 - 0.5).collect();
+            let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-6);
+            v.iter_mut().for_each(|x| *x /= norm);
+            rows.push(v);
+        }
+    }
+    let dim = rows[0].len();
+    (rows, dim)
+}
+
+#[test]
+fn queries_search_a_graph_while_it_grows_past_several_reservations() {
+    let (rows, dim) = nordland_rows();
+    assert_eq!(rows.len(), 4800);
+    // Two adding threads, as on CI's two cores; eight searchers, more than that. Whole rows: the
+    // first 512 pixels are the sky of the image's top rows, alike across frames.
+    let params = GraphParams { dims: 0, threads: 2, ..Default::default() };
+    let graph = Graph::new(dim, params).unwrap();
+    let reduced: Vec<Vec<f32>> = rows
+        .iter()
+        .map(|r| {
+            let mut out = Vec::new();
+            graph.reduce(r, &mut out);
+            out
+        })
+        .collect();
+    let done = AtomicBool::new(false);
+    let (searches, failures) = (AtomicUsize::new(0), AtomicUsize::new(0));
+    std::thread::scope(|s| {
+        for t in 0..8 {
+            let (graph, reduced, done, searches, failures) = (&graph, &reduced, &done, &searches, &failures);
+            s.spawn(move || {
+                let mut i = t * 611;
+                while !done.load(Ordering::Acquire) {
+                    i = (i + 97) % reduced.len();
+                    let covered = graph.covered();
+                    match graph.search(&reduced[i], 10, |_| true) {
+                        Ok(found) => assert!(found.iter().all(|&r| r < graph.covered().max(covered))),
+                        Err(e) => {
+                            failures.fetch_add(1, Ordering::Relaxed);
+                            eprintln!("search failed while the graph covered {covered}: {e}");
+                        }
+                    }
+                    searches.fetch_add(1, Ordering::Relaxed);
+                }
+            });
+        }
+        // The indexer's part: rows in order, 200 at a time, so capacity grows 1024 -> 1536 -> ...
+        for start in (0..rows.len()).step_by(200) {
+            let end = (start + 200).min(rows.len());
+            let chunk: Vec<f32> = reduced[start..end].concat();
+            graph.add_rows(start, &chunk).unwrap();
+        }
+        done.store(true, Ordering::Release);
+    });
+    assert_eq!(graph.covered(), 4800);
+    assert!(searches.load(Ordering::Relaxed) > 100, "only {} searches ran", searches.load(Ordering::Relaxed));
+    assert_eq!(failures.load(Ordering::Relaxed), 0, "searches failed while the graph grew");
+    // The graph it built answers: every 10th row finds itself first, or a frame as close to it (a
+    // stopped train repeats its view); f16 rows are within 1e-3 of their own score 1.
+    let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f32>();
+    let probes: Vec<usize> = (0..rows.len()).step_by(10).collect();
+    let misses: Vec<(usize, usize, f32)> = probes
+        .iter()
+        .map(|&i| {
+            let best = graph.search(&reduced[i], 1, |_| true).unwrap()[0];
+            (i, best, dot(&reduced[i], &reduced[best]))
+        })
+        .filter(|&(i, best, d)| best != i && d < 0.999)
+        .collect();
+    assert!(misses.len() * 100 <= probes.len() * 2, "{} of {} rows not found: {misses:?}", misses.len(), probes.len());
+}
