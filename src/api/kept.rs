@@ -36,6 +36,8 @@ pub fn loop_records(q: QueryFrame<'_>, matches: &[LoopMatch]) -> Vec<LoopRecord>
                 verified: v.is_some_and(|v| v.verified),
                 inliers: v.map_or(0, |v| v.inliers as u32),
                 relative_pose: v.and_then(|v| v.relative_pose.as_ref()).copied(),
+                metric: v.is_some_and(|v| v.metric),
+                covariance: v.and_then(|v| v.covariance.clone()),
                 inlier_matches: v.map_or_else(Vec::new, |v| v.inlier_matches.clone()),
                 found,
                 verdict: None,

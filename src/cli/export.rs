@@ -25,6 +25,9 @@ pub struct ExportArgs {
     loop_sigma_m: Option<f64>,
     #[arg(long)]
     loop_sigma_rad: Option<f64>,
+    /// Only loops a client accepted become edges (not verified metric loops without a verdict).
+    #[arg(long)]
+    accepted_only: bool,
 }
 
 pub fn run(a: ExportArgs) -> Result<ExitCode> {
@@ -40,8 +43,14 @@ pub fn run(a: ExportArgs) -> Result<ExitCode> {
             query.push((name, v.to_string()));
         }
     }
+    if a.accepted_only {
+        query.push(("accepted_only", "true".into()));
+    }
     let r =
         remote.send(remote.client.get(format!("{}/v1/sessions/{}/export", remote.base, a.session)).query(&query))?;
+    if let Some(summary) = r.headers().get("x-loopd-loops-left-out").and_then(|v| v.to_str().ok()) {
+        eprintln!("graph.g2o: {summary}");
+    }
     let bytes = r.bytes().context("reading the export")?;
     if a.out.as_os_str() == "-" {
         use std::io::Write;

@@ -15,11 +15,13 @@ pub struct Noise {
     pub odometry_rad: f64,
     pub loop_m: f64,
     pub loop_rad: f64,
+    /// Only loops a client accepted become edges (not verified metric loops without a verdict).
+    pub accepted_only: bool,
 }
 
 impl Default for Noise {
     fn default() -> Self {
-        Self { odometry_m: 0.1, odometry_rad: 0.01, loop_m: 0.2, loop_rad: 0.02 }
+        Self { odometry_m: 0.1, odometry_rad: 0.01, loop_m: 0.2, loop_rad: 0.02, accepted_only: false }
     }
 }
 
@@ -42,13 +44,16 @@ pub fn file_name(robot: &str) -> String {
     out
 }
 
-/// The tar: frames.csv, loops.csv, graph.g2o, trajectories/<robot>.tum, README.txt.
-pub fn tar(snapshot: &Snapshot, noise: Noise) -> std::io::Result<Vec<u8>> {
+/// The tar (frames.csv, loops.csv, graph.g2o, trajectories/<robot>.tum, README.txt, which
+/// says how many loops became edges and why the others did not) and those counts.
+pub fn tar(snapshot: &Snapshot, noise: Noise) -> std::io::Result<(Vec<u8>, g2o::EdgeCounts)> {
+    let (graph, counts) = g2o::graph_counted(snapshot, noise);
+    let readme = format!("{README}\nthis export: {}\n", counts.summary());
     let mut files: Vec<(String, Vec<u8>)> = vec![
-        ("README.txt".into(), README.as_bytes().to_vec()),
+        ("README.txt".into(), readme.into_bytes()),
         ("frames.csv".into(), tables::frames_csv(&snapshot.frames).into_bytes()),
         ("loops.csv".into(), tables::loops_csv(&snapshot.loops).into_bytes()),
-        ("graph.g2o".into(), g2o::graph(snapshot, noise).into_bytes()),
+        ("graph.g2o".into(), graph.into_bytes()),
     ];
     for (robot, tum) in tables::tum_by_robot(&snapshot.frames) {
         files.push((format!("trajectories/{}.tum", file_name(&robot)), tum.into_bytes()));
@@ -63,7 +68,7 @@ pub fn tar(snapshot: &Snapshot, noise: Noise) -> std::io::Result<Vec<u8>> {
         header.set_mtime(mtime);
         builder.append_data(&mut header, name, bytes.as_slice())?;
     }
-    builder.into_inner()
+    Ok((builder.into_inner()?, counts))
 }
 
 const README: &str = "\
@@ -73,7 +78,8 @@ trajectories/     one TUM file per robot (frames with a pose): timestamp x y z q
 loops.csv         every loop candidate answered, with verification and the client's verdict
 graph.g2o         VERTEX_SE3:QUAT per posed frame (id = frame id), EDGE_SE3:QUAT odometry between a
                   robot's consecutive posed frames (measured from their poses), and a loop edge per
-                  loop a client accepted with a relative pose (information: the inverse of its
-                  covariance, else the export's loop noise); rejected and unjudged candidates and
-                  monocular verification poses (scale unknown) give no edge
+                  loop a client accepted with a relative pose, or verified with a metric pose
+                  (depth at one of its frames) and not rejected (information: the inverse of its
+                  covariance, else the export's loop noise; accepted_only=true: accepted loops
+                  only); other candidates and monocular poses (scale unknown) give no edge
 ";

@@ -59,6 +59,14 @@ pub struct LoopRecord {
     /// From verification, with a camera (monocular: |t| = 1).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub relative_pose: Option<Transform>,
+    /// The relative pose is metric (depth at one of the frames): `graph.g2o` makes it a loop
+    /// edge without a client's verdict.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub metric: bool,
+    /// A metric pose's 6x6 row-major covariance (x y z, then the rotation vector).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<f64>>, min_items = 36, max_items = 36)]
+    pub covariance: Option<Vec<f64>>,
     /// Up to 100 inlier matches (query x, y, match x, y as fractions of each image's size).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     #[schema(value_type = Vec<Vec<f32>>, max_items = 100)]
@@ -303,6 +311,8 @@ mod tests {
             verified: false,
             inliers: 0,
             relative_pose: None,
+            metric: false,
+            covariance: None,
             inlier_matches: Vec::new(),
             found: 0.0,
             verdict: None,

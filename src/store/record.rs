@@ -37,6 +37,17 @@ pub struct Camera {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schema(value_type = Option<Vec<f64>>, min_items = 5, max_items = 5)]
     pub distortion: Option<[f64; 5]>,
+    /// Units per metre of the 16-bit depth images its frames may carry (unset: 1000, i.e.
+    /// millimetres; TUM RGB-D: 5000). Float depth images are in metres.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_scale: Option<f64>,
+}
+
+impl Camera {
+    /// Depth units per metre.
+    pub fn depth_scale(&self) -> f64 {
+        self.depth_scale.unwrap_or(crate::verify::depth::DEFAULT_DEPTH_SCALE)
+    }
 }
 
 /// A frame as stored (without its descriptor, which follows the JSON header raw).

@@ -28,6 +28,10 @@ const MAGIC_V1: &[u8; 4] = b"ORB1";
 const HEADER_V1: usize = 16;
 /// Version 2 (written): 12-bit positions and the descriptor's first bytes.
 const MAGIC: &[u8; 4] = b"ORB2";
+/// Version 3 (written for frames with depth): version 2, then each keypoint's depth.
+const MAGIC_DEPTH: &[u8; 4] = b"ORB3";
+/// A keypoint's depth: millimetres as u16 (0: none).
+const DEPTH_BYTES: usize = 2;
 /// magic + descriptor bytes u8 + width u32 + height u32 + count u32, all little-endian.
 const HEADER_BYTES: usize = 17;
 /// x, y as 12-bit fixed point fractions of width and height, packed in 3 bytes.
@@ -97,12 +101,24 @@ pub struct Features {
     pub descriptors: Vec<[u8; DESCRIPTOR_BYTES]>,
     /// Bytes of each descriptor that carry tests (1..=32); the others are zero.
     pub descriptor_bytes: usize,
+    /// Each keypoint's depth in metres (0: none), when the frame came with depth; else empty.
+    pub depths: Vec<f32>,
 }
 
 impl Features {
     /// No keypoints (an image too small or too plain), with the image's size.
     pub fn none(width: u32, height: u32, descriptor_bytes: usize) -> Self {
-        Self { width, height, points: Vec::new(), descriptors: Vec::new(), descriptor_bytes }
+        Self { width, height, points: Vec::new(), descriptors: Vec::new(), descriptor_bytes, depths: Vec::new() }
+    }
+
+    /// True when the frame came with depth.
+    pub fn has_depth(&self) -> bool {
+        !self.depths.is_empty()
+    }
+
+    /// Keypoint `i`'s depth in metres, if it has one.
+    pub fn depth(&self, i: usize) -> Option<f32> {
+        self.depths.get(i).copied().filter(|&d| d > 0.0)
     }
 
     /// Number of keypoints.
@@ -118,6 +134,7 @@ impl Features {
     pub fn truncate(&mut self, n: usize) {
         self.points.truncate(n);
         self.descriptors.truncate(n);
+        self.depths.truncate(n);
     }
 
     /// Keeps each descriptor's first `bytes` bytes and zeroes the rest (no-op when it keeps fewer).
@@ -146,6 +163,13 @@ impl Features {
                 self.descriptor_bytes
             )));
         }
+        if !self.depths.is_empty() && self.depths.len() != self.points.len() {
+            return Err(VerifyError::Corrupt(format!(
+                "features: {} points but {} depths",
+                self.points.len(),
+                self.depths.len()
+            )));
+        }
         if let Some(p) = self.points.iter().find(|p| !p[0].is_finite() || !p[1].is_finite()) {
             return Err(VerifyError::Corrupt(format!("features: non-finite keypoint ({}, {})", p[0], p[1])));
         }
@@ -158,16 +182,23 @@ impl Features {
         HEADER_BYTES + n * (POSITION_BYTES + descriptor_bytes)
     }
 
+    /// Encoded size with each keypoint's depth (2 more bytes a keypoint) or without.
+    pub const fn encoded_len_of(n: usize, descriptor_bytes: usize, depth: bool) -> usize {
+        Self::encoded_len(n, descriptor_bytes) + if depth { n * DEPTH_BYTES } else { 0 }
+    }
+
     /// Compact little-endian encoding: `"ORB2" | descriptor bytes u8 | width u32 | height u32 |
     /// n u32 | n × (x, y: 12 bits each, 3 B) | n × descriptor bytes`. x, y are fixed point fractions
     /// of width / height: error at most side / 8190 (0.08 px at 640), a tenth of a pixel of the
-    /// image extraction ran on at the default `max_side`.
+    /// image extraction ran on at the default `max_side`. With depth, the magic is `"ORB3"` and
+    /// `n × depth` (millimetres, u16; 0: none) follows the descriptors.
     pub fn encode(&self) -> Vec<u8> {
         // Never write more entries than the shorter of the two vectors (they should match).
         let n = self.points.len().min(self.descriptors.len());
         let bytes = self.descriptor_bytes.clamp(1, DESCRIPTOR_BYTES);
-        let mut out = Vec::with_capacity(Self::encoded_len(n, bytes));
-        out.extend_from_slice(MAGIC);
+        let depth = self.has_depth();
+        let mut out = Vec::with_capacity(Self::encoded_len_of(n, bytes, depth));
+        out.extend_from_slice(if depth { MAGIC_DEPTH } else { MAGIC });
         out.push(bytes as u8);
         out.extend_from_slice(&self.width.to_le_bytes());
         out.extend_from_slice(&self.height.to_le_bytes());
@@ -181,17 +212,27 @@ impl Features {
         for d in &self.descriptors[..n] {
             out.extend_from_slice(&d[..bytes]);
         }
+        if depth {
+            for i in 0..n {
+                let mm = (self.depths.get(i).copied().unwrap_or(0.0) * 1000.0).round();
+                let mm = if mm.is_finite() && (1.0..=65535.0).contains(&mm) { mm as u16 } else { 0 };
+                out.extend_from_slice(&mm.to_le_bytes());
+            }
+        }
         out
     }
 
     /// Reads what [`encode`](Self::encode) wrote, and the version-1 blobs stored before it.
     pub fn decode(b: &[u8]) -> Result<Self, VerifyError> {
+        let depth = b.get(0..4) == Some(MAGIC_DEPTH);
         let (header, bytes, dims_at, pos_bytes) = match b.get(0..4) {
-            Some(m) if m == MAGIC => (HEADER_BYTES, b.get(4).copied().map_or(0, usize::from), 5, POSITION_BYTES),
+            Some(m) if m == MAGIC || m == MAGIC_DEPTH => {
+                (HEADER_BYTES, b.get(4).copied().map_or(0, usize::from), 5, POSITION_BYTES)
+            }
             Some(m) if m == MAGIC_V1 => (HEADER_V1, DESCRIPTOR_BYTES, 4, 4),
             _ => {
                 return Err(VerifyError::Corrupt(format!(
-                    "features blob: bad magic (expected \"ORB2\" or \"ORB1\", {} bytes)",
+                    "features blob: bad magic (expected \"ORB3\", \"ORB2\" or \"ORB1\", {} bytes)",
                     b.len()
                 )))
             }
@@ -216,7 +257,7 @@ impl Features {
         if n > MAX_FEATURES {
             return Err(VerifyError::Corrupt(format!("features blob: {n} features exceeds limit {MAX_FEATURES}")));
         }
-        let expected = header + n * (pos_bytes + bytes);
+        let expected = header + n * (pos_bytes + bytes + if depth { DEPTH_BYTES } else { 0 });
         if b.len() != expected {
             return Err(VerifyError::Corrupt(format!(
                 "features blob: {} bytes, expected {expected} for {n} features",
@@ -241,7 +282,14 @@ impl Features {
                 })
                 .collect()
         };
-        let descriptors = b[header + pos_bytes * n..]
+        let descriptors_at = header + pos_bytes * n;
+        let depths_at = descriptors_at + bytes * n;
+        let depths = if depth {
+            b[depths_at..].chunks_exact(DEPTH_BYTES).map(|c| u16::from_le_bytes([c[0], c[1]]) as f32 / 1000.0).collect()
+        } else {
+            Vec::new()
+        };
+        let descriptors = b[descriptors_at..depths_at]
             .chunks_exact(bytes)
             .map(|c| {
                 let mut d = [0u8; DESCRIPTOR_BYTES];
@@ -249,7 +297,7 @@ impl Features {
                 d
             })
             .collect();
-        Ok(Self { width, height, points, descriptors, descriptor_bytes: bytes })
+        Ok(Self { width, height, points, descriptors, descriptor_bytes: bytes, depths })
     }
 }
 

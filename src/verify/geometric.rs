@@ -5,6 +5,12 @@
 //! Pose convention: `RelativePose` is T_query_candidate, the pose of the CANDIDATE camera
 //! expressed in the QUERY camera frame: X_query = R · X_candidate + t, with |t| = 1
 //! (monocular scale is unknown). For world poses T_w_q, T_w_c: R = R_w_q^T · R_w_c.
+//!
+//! With depth at either frame's keypoints ([`super::depth`]) the pose is metric: OpenCV
+//! `solvePnPRansac` (EPnP) on the verified matches, the candidate's keypoints lifted to 3D
+//! (else the query's, and the result inverted), refined by `solvePnPRefineLM`; its covariance is
+//! σ²(JᵀJ)⁻¹ of the refined reprojection problem (J from `projectPoints`, σ² the residual
+//! variance), carried to the error of g2o's SE3 edge (translation, then rotation vector).
 
 use nalgebra::{Matrix3, UnitQuaternion};
 use opencv::calib3d;
@@ -20,6 +26,12 @@ pub use super::matching::Matcher;
 const MIN_POINTS: usize = 8;
 /// Matching is O(n·m); refuse inputs far beyond any sane `max_features` instead of stalling.
 const MAX_POINTS: usize = 20_000;
+/// PnP inliers a metric pose needs; with fewer the loop keeps the unit direction. As many as a
+/// verification needs: on tum-desk 4->2, 21 PnP inliers (of 33) gave a pose 21 cm off, the
+/// loops with 44 and more 1.4-3.4 cm (docs/verification.md).
+pub const MIN_PNP_INLIERS: usize = 30;
+/// PnP RANSAC reprojection threshold (pixels).
+const PNP_THRESHOLD_PX: f32 = 4.0;
 /// Inlier matches kept for people to look at (the loop inspector draws them); enough to see
 /// where the views agree, small enough to keep with every loop.
 pub const MAX_SHOWN_INLIERS: usize = 100;
@@ -133,6 +145,18 @@ pub struct Verification {
     /// Only with intrinsics and only when verified; see the module doc for the convention.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub relative_pose: Option<RelativePose>,
+    /// The relative pose's translation is in metres (depth at one of the frames), not a unit
+    /// direction.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub metric: bool,
+    /// 6x6 row-major covariance of a metric pose (x y z in m², then the rotation vector in
+    /// rad²), the error g2o's EDGE_SE3:QUAT takes.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<f64>>, min_items = 36, max_items = 36)]
+    pub covariance: Option<Vec<f64>>,
+    /// Matches consistent with the metric pose (PnP inliers); 0 without one.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub pose_inliers: usize,
     /// Up to [`MAX_SHOWN_INLIERS`] inlier matches as (query x, y, candidate x, y), each a
     /// fraction of its image's width or height; kept with the loop, not answered.
     #[serde(skip)]
@@ -153,9 +177,16 @@ impl Verification {
             verified: false,
             reason: Some(reason),
             relative_pose: None,
+            metric: false,
+            covariance: None,
+            pose_inliers: 0,
             inlier_matches: Vec::new(),
         }
     }
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// T_query_candidate: unit quaternion (qw >= 0) and unit translation direction; the one rigid
@@ -275,15 +306,202 @@ fn verify_inner(
     if inliers < p.min_inliers {
         return Ok(Verification::rejected(n, inliers, format!("too few inliers ({inliers} < {})", p.min_inliers)));
     }
-    Ok(Verification {
+    let mut v = Verification {
         matches: n,
         inliers,
         inlier_ratio: ratio_of(inliers, n),
         verified: true,
         reason: None,
         relative_pose: pose,
+        metric: false,
+        covariance: None,
+        pose_inliers: 0,
         inlier_matches: shown_inliers(q, c, &matches, &mask),
-    })
+    };
+    if let Some(k) = intr.filter(|_| q.has_depth() || c.has_depth()) {
+        // A failed PnP leaves the verified loop with its direction (marked not metric).
+        if let Ok(Some(m)) = metric_pose(q, c, &matches, &mask, k) {
+            v.relative_pose = Some(m.pose);
+            v.metric = true;
+            v.covariance = Some(m.covariance);
+            v.pose_inliers = m.inliers;
+        }
+    }
+    Ok(v)
+}
+
+/// A metric relative pose (T_query_candidate), its covariance and its PnP inliers.
+pub struct MetricPose {
+    pub pose: RelativePose,
+    pub covariance: Vec<f64>,
+    pub inliers: usize,
+}
+
+/// Which frame's depth lifts the matches to 3D.
+#[derive(Clone, Copy, PartialEq)]
+enum Lifted {
+    Candidate,
+    Query,
+}
+
+/// PnP on the verified matches with depth on one side; None when too few matches have depth or
+/// PnP finds fewer than [`MIN_PNP_INLIERS`] inliers.
+pub fn metric_pose(
+    q: &Features,
+    c: &Features,
+    matches: &[(usize, usize)],
+    mask: &[bool],
+    k: &Intrinsics,
+) -> opencv::Result<Option<MetricPose>> {
+    // The candidate's depth when it has it: the result is then T_query_candidate directly.
+    let lifted = if c.has_depth() { Lifted::Candidate } else { Lifted::Query };
+    let (from, to) = match lifted {
+        Lifted::Candidate => (c, q),
+        Lifted::Query => (q, c),
+    };
+    let kmat = k.camera_matrix()?;
+    let mut obj = Vector::<core::Point3f>::new();
+    let (mut src, mut dst) = (Vector::<Point2f>::new(), Vector::<Point2f>::new());
+    for (&(qi, ci), _) in matches.iter().zip(mask).filter(|(_, &keep)| keep) {
+        let (fi, ti) = match lifted {
+            Lifted::Candidate => (ci, qi),
+            Lifted::Query => (qi, ci),
+        };
+        let Some(z) = from.depth(fi) else { continue };
+        src.push(Point2f::new(from.points[fi][0], from.points[fi][1]));
+        dst.push(Point2f::new(to.points[ti][0], to.points[ti][1]));
+        obj.push(core::Point3f::new(z, 0.0, 0.0));
+    }
+    if obj.len() < MIN_PNP_INLIERS {
+        return Ok(None);
+    }
+    // Undistorted pixels (P = K): the lifted rays and the observations in one pinhole camera.
+    let (src, dst) = match k.dist {
+        Some(d) => (undistort(&src, &kmat, &d)?, undistort(&dst, &kmat, &d)?),
+        None => (src, dst),
+    };
+    let mut points = Vector::<core::Point3f>::with_capacity(obj.len());
+    for (p, o) in src.iter().zip(obj.iter()) {
+        let z = o.x as f64;
+        let x = (p.x as f64 - k.cx) / k.fx * z;
+        let y = (p.y as f64 - k.cy) / k.fy * z;
+        points.push(core::Point3f::new(x as f32, y as f32, z as f32));
+    }
+    let (mut rvec, mut tvec, mut inliers) = (Mat::default(), Mat::default(), Vector::<i32>::new());
+    let found = calib3d::solve_pnp_ransac(
+        &points,
+        &dst,
+        &kmat,
+        &core::no_array(),
+        &mut rvec,
+        &mut tvec,
+        false,
+        500,
+        PNP_THRESHOLD_PX,
+        0.999,
+        &mut inliers,
+        calib3d::SOLVEPNP_EPNP,
+    )?;
+    if !found || inliers.len() < MIN_PNP_INLIERS {
+        return Ok(None);
+    }
+    let mut obj_in = Vector::<core::Point3f>::with_capacity(inliers.len());
+    let mut img_in = Vector::<Point2f>::with_capacity(inliers.len());
+    for i in inliers.iter() {
+        obj_in.push(points.get(i as usize)?);
+        img_in.push(dst.get(i as usize)?);
+    }
+    let crit = TermCriteria::new(core::TermCriteria_COUNT + core::TermCriteria_EPS, 50, 1e-10)?;
+    calib3d::solve_pnp_refine_lm(&obj_in, &img_in, &kmat, &core::no_array(), &mut rvec, &mut tvec, crit)?;
+    let p = [
+        *rvec.at::<f64>(0)?,
+        *rvec.at::<f64>(1)?,
+        *rvec.at::<f64>(2)?,
+        *tvec.at::<f64>(0)?,
+        *tvec.at::<f64>(1)?,
+        *tvec.at::<f64>(2)?,
+    ];
+    if p.iter().any(|v| !v.is_finite()) {
+        return Ok(None);
+    }
+    let Some(cov_p) = pnp_covariance(&obj_in, &img_in, &kmat, &rvec, &tvec)? else { return Ok(None) };
+    // The pose as an edge measures it (T_query_candidate), from PnP's parameters.
+    let edge = |p: &[f64; 6]| {
+        let t = pnp_transform(p);
+        match lifted {
+            Lifted::Candidate => t,
+            Lifted::Query => t.inverse(),
+        }
+    };
+    let estimate = edge(&p);
+    // g2o's error of a perturbed pose against the estimate: (R̂ᵀ(t − t̂), log(R̂ᵀR)).
+    let error = |p: &[f64; 6]| {
+        let d = estimate.inverse() * edge(p);
+        let r = d.rotation.scaled_axis();
+        [d.translation.x, d.translation.y, d.translation.z, r.x, r.y, r.z]
+    };
+    let mut g = nalgebra::Matrix6::<f64>::zeros();
+    for j in 0..6 {
+        let h = 1e-6;
+        let (mut hi, mut lo) = (p, p);
+        hi[j] += h;
+        lo[j] -= h;
+        let (a, b) = (error(&hi), error(&lo));
+        for i in 0..6 {
+            g[(i, j)] = (a[i] - b[i]) / (2.0 * h);
+        }
+    }
+    let cov = g * cov_p * g.transpose();
+    let cov = (cov + cov.transpose()) * 0.5;
+    if cov.iter().any(|v| !v.is_finite()) {
+        return Ok(None);
+    }
+    let (t, rq) = (estimate.translation.vector, estimate.rotation);
+    let s = if rq.w < 0.0 { -1.0 } else { 1.0 };
+    let pose = RelativePose { qx: s * rq.i, qy: s * rq.j, qz: s * rq.k, qw: s * rq.w, tx: t.x, ty: t.y, tz: t.z };
+    let covariance = (0..6).flat_map(|r| (0..6).map(move |c| (r, c))).map(|(r, c)| cov[(r, c)]).collect();
+    Ok(Some(MetricPose { pose, covariance, inliers: inliers.len() }))
+}
+
+/// PnP's (rvec, tvec) as the transform it maps the lifted points by.
+fn pnp_transform(p: &[f64; 6]) -> nalgebra::Isometry3<f64> {
+    let r = UnitQuaternion::from_scaled_axis(nalgebra::Vector3::new(p[0], p[1], p[2]));
+    nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(p[3], p[4], p[5]), r)
+}
+
+/// σ²(JᵀJ)⁻¹ over (rvec, tvec) of the refined reprojection problem; None when it is singular.
+fn pnp_covariance(
+    obj: &Vector<core::Point3f>,
+    img: &Vector<Point2f>,
+    kmat: &Mat,
+    rvec: &Mat,
+    tvec: &Mat,
+) -> opencv::Result<Option<nalgebra::Matrix6<f64>>> {
+    let (mut projected, mut jac) = (Vector::<Point2f>::new(), Mat::default());
+    calib3d::project_points(obj, rvec, tvec, kmat, &core::no_array(), &mut projected, &mut jac, 0.0)?;
+    let n = obj.len();
+    if jac.rows() as usize != 2 * n || (jac.cols() as usize) < 6 || n * 2 <= 6 {
+        return Ok(None);
+    }
+    let mut jtj = nalgebra::Matrix6::<f64>::zeros();
+    let mut sq = 0.0;
+    for i in 0..n {
+        let (pr, ob) = (projected.get(i)?, img.get(i)?);
+        sq += ((pr.x - ob.x) as f64).powi(2) + ((pr.y - ob.y) as f64).powi(2);
+        for row in [2 * i, 2 * i + 1] {
+            let mut jr = [0.0f64; 6];
+            for (c, v) in jr.iter_mut().enumerate() {
+                *v = *jac.at_2d::<f64>(row as i32, c as i32)?;
+            }
+            for a in 0..6 {
+                for b in 0..6 {
+                    jtj[(a, b)] += jr[a] * jr[b];
+                }
+            }
+        }
+    }
+    let sigma2 = sq / (2 * n - 6) as f64;
+    Ok(jtj.try_inverse().map(|inv| inv * sigma2))
 }
 
 fn count(mask: &[bool]) -> usize {

@@ -4,6 +4,7 @@
 //! ([`confidence`]). The server (`api::service`) and `loopd eval` both go through [`check`], so
 //! they give the same verified matches and the same confidences.
 pub mod confidence;
+pub mod depth;
 pub mod error;
 pub mod features;
 pub mod geometric;

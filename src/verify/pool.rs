@@ -1,5 +1,6 @@
 //! Feature extraction and candidate checks on a bounded set of blocking threads, never on the
 //! request executor nor on the model thread.
+use super::depth::DepthImage;
 use super::error::VerifyError;
 use super::features::{from_image_bytes, FeatureParams, Features};
 use super::{Checks, LoopMatch};
@@ -62,16 +63,32 @@ impl Verifier {
         .map_err(|e| VerifyError::Failed(format!("verification worker failed: {e}")))
     }
 
-    /// ORB features of an encoded image, capped to the stored size limit.
-    pub async fn extract(&self, image: bytes::Bytes, limits: ImageLimits) -> Result<Features, VerifyError> {
+    /// ORB features of an encoded image, capped to the stored size limit (counting each
+    /// keypoint's depth when the frame has depth).
+    pub async fn extract(
+        &self,
+        image: bytes::Bytes,
+        limits: ImageLimits,
+        depth: bool,
+    ) -> Result<Features, VerifyError> {
         let cfg = self.cfg.clone();
         self.extracted.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let mut f = self.run(move || from_image_bytes(&image, &limits, &cfg.features)).await??;
         let bytes = f.descriptor_bytes;
-        let fit = self.cfg.max_feature_bytes.saturating_sub(Features::encoded_len(0, bytes))
-            / (Features::encoded_len(1, bytes) - Features::encoded_len(0, bytes)).max(1);
+        let fit = self.cfg.max_feature_bytes.saturating_sub(Features::encoded_len_of(0, bytes, depth))
+            / (Features::encoded_len_of(1, bytes, depth) - Features::encoded_len_of(0, bytes, depth)).max(1);
         f.truncate(fit);
         Ok(f)
+    }
+
+    /// A frame's depth image, decoded on a worker ([`DepthImage::decode`]).
+    pub async fn decode_depth(
+        &self,
+        depth: bytes::Bytes,
+        scale: f64,
+        limits: ImageLimits,
+    ) -> Result<DepthImage, VerifyError> {
+        self.run(move || DepthImage::decode(&depth, scale, &limits)).await?
     }
 
     /// [`super::check`] on a worker.

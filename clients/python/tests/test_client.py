@@ -193,3 +193,30 @@ def test_a_frame_the_client_sends_again_is_stored_once(server):
         # A key the caller gives is sent as it is.
         mine = c.frame_request("twice", "r", Frame(image=images[0], timestamp=3.0, idempotency_key="robot-r/3"))
         assert mine.idempotency_key == "robot-r/3"
+
+
+def test_rgbd_frames_give_metric_loops(server):
+    """Depth images reach the server with frames and queries (`Frame.depth`, `query(depth=)`,
+    `create_session(depth_scale=)`): tum-desk's frame 5 closes on a frame sent with depth with a
+    metric pose and its covariance; bad depth is refused with INVALID_ARGUMENT."""
+    from conftest import DATA
+    desk = DATA / "rgbd-slambook2/tum-desk"
+    color = lambda i: (desk / f"color/{i}.png").read_bytes()  # noqa: E731
+    depth = lambda i: (desk / f"depth/{i}.pgm").read_bytes()  # noqa: E731
+    key = server.tenant("rgbd")
+    with Client(server.grpc, key=key, ca=server.ca) as c:
+        c.create_session("desk", camera=[518.0, 519.0, 325.5, 253.5], depth_scale=1000.0)
+        for i in range(1, 5):
+            c.add_frame("desk", "rgbd", Frame(image=color(i), depth=depth(i), timestamp=float(i), frame_id=i))
+        with pytest.raises(grpc.RpcError) as bad:
+            c.add_frame("desk", "rgbd", Frame(image=color(5), depth=color(5), timestamp=5.0, frame_id=5))
+        assert bad.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "16-bit" in bad.value.details()
+        assert c.get_session("desk").frames == 4
+        best = c.query("desk", "other", image=color(5), options=query_options(k=1))[0]
+        v = best.verification
+        assert v.verified and v.metric and len(v.covariance) == 36 and v.pose_inliers >= 30, v
+        # Frame 5 is 0.23 m from frame 4 (the ground truth), and the pose says so in metres.
+        t = (v.relative_pose.tx ** 2 + v.relative_pose.ty ** 2 + v.relative_pose.tz ** 2) ** 0.5
+        assert best.frame_id == 4 and abs(t - 0.232) < 0.05, (best.frame_id, t)
+        with_depth = c.query("desk", "other", image=color(5), depth=depth(5), options=query_options(k=1))[0]
+        assert with_depth.verification.metric

@@ -26,6 +26,8 @@ pub fn loop_to_pb(l: LoopRecord) -> pb::Loop {
         verified: l.verified,
         inliers: l.inliers,
         relative_pose: l.relative_pose.map(pose_to_pb),
+        metric: l.metric,
+        covariance: l.covariance.unwrap_or_default(),
         found: l.found,
         inlier_matches: l
             .inlier_matches

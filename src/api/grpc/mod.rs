@@ -72,7 +72,12 @@ fn camera(c: Option<pb::Camera>) -> Result<Option<Camera>, ApiError> {
         &[k1, k2, p1, p2, k3] => Some([k1, k2, p1, p2, k3]),
         d => return Err(ApiError::InvalidArgument(format!("camera distortion has {} values; 0 or 5", d.len()))),
     };
-    Ok(Some(Camera { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, distortion }))
+    Ok(Some(Camera { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, distortion, depth_scale: c.depth_scale }))
+}
+
+/// An optional bytes field: empty is unset.
+fn depth(b: bytes::Bytes) -> Option<bytes::Bytes> {
+    (!b.is_empty()).then_some(b)
 }
 
 fn verification_to_pb(v: Verification) -> pb::Verification {
@@ -83,6 +88,9 @@ fn verification_to_pb(v: Verification) -> pb::Verification {
         verified: v.verified,
         reason: v.reason.unwrap_or_default(),
         relative_pose: v.relative_pose.map(loops::pose_to_pb),
+        metric: v.metric,
+        covariance: v.covariance.unwrap_or_default(),
+        pose_inliers: v.pose_inliers as u32,
     }
 }
 
@@ -146,7 +154,10 @@ pub fn parse_add_frame(bytes: &[u8]) -> Result<(String, FrameInput, QueryOverrid
 
 fn frame_input(r: pb::AddFrameRequest) -> Result<(String, FrameInput, QueryOverrides), ApiError> {
     let content = match r.content {
-        Some(pb::add_frame_request::Content::Image(b)) => Content::Image(b),
+        Some(pb::add_frame_request::Content::Image(b)) => Content::Image { image: b, depth: depth(r.depth) },
+        Some(pb::add_frame_request::Content::Descriptor(_)) if !r.depth.is_empty() => {
+            return Err(ApiError::InvalidArgument("a depth image goes with an image, not a descriptor".into()))
+        }
         Some(pb::add_frame_request::Content::Descriptor(d)) => Content::Descriptor(d.values),
         None => return Err(ApiError::InvalidArgument("a frame needs an image or a descriptor".into())),
     };
@@ -258,7 +269,12 @@ impl pb::loopd_server::Loopd for GrpcApi {
         let caller = caller(&req)?;
         let r = req.into_inner();
         let target = match r.content {
-            Some(pb::query_request::Content::Image(b)) => QueryTarget::Content(Content::Image(b)),
+            Some(pb::query_request::Content::Image(b)) => {
+                QueryTarget::Content(Content::Image { image: b, depth: depth(r.depth) })
+            }
+            Some(_) if !r.depth.is_empty() => {
+                return Err(ApiError::InvalidArgument("a depth image goes with an image".into()).into())
+            }
             Some(pb::query_request::Content::Descriptor(d)) => QueryTarget::Content(Content::Descriptor(d.values)),
             Some(pb::query_request::Content::FrameId(id)) => QueryTarget::Frame(id),
             None => return Err(Status::invalid_argument("a query needs an image, a descriptor or a frame_id")),

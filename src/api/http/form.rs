@@ -37,10 +37,17 @@ pub struct FrameFields {
     pub idempotency_key: Option<String>,
     #[serde(skip)]
     pub image: Option<Bytes>,
+    /// The `depth` part of a multipart form: the image's registered depth image.
+    #[serde(skip)]
+    pub depth: Option<Bytes>,
 }
 
 /// Text form fields (multipart or query string) into the same JSON shape as a JSON body.
-fn fields_from_text(map: HashMap<String, String>, image: Option<Bytes>) -> Result<FrameFields, ApiError> {
+fn fields_from_text(
+    map: HashMap<String, String>,
+    image: Option<Bytes>,
+    depth: Option<Bytes>,
+) -> Result<FrameFields, ApiError> {
     let mut obj = serde_json::Map::new();
     for (k, v) in map {
         let value = match k.as_str() {
@@ -54,6 +61,7 @@ fn fields_from_text(map: HashMap<String, String>, image: Option<Bytes>) -> Resul
     let mut f: FrameFields =
         serde_json::from_value(serde_json::Value::Object(obj)).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
     f.image = image;
+    f.depth = depth;
     Ok(f)
 }
 
@@ -70,15 +78,24 @@ pub async fn read_fields(req: Request) -> Result<FrameFields, ApiError> {
         let Json(f) = Json::<FrameFields>::from_request(req, &()).await.map_err(json_error)?;
         return Ok(f);
     }
-    let mut form = read_form(req, &["image"]).await?;
-    let image = match (form.files.pop(), form.body) {
-        (Some(_), _) if !form.files.is_empty() => {
-            return Err(ApiError::InvalidArgument("one 'image' part per frame".into()));
+    let mut form = read_form(req, &["image", "depth"]).await?;
+    let mut part = |name: &str| {
+        let mut files: Vec<Bytes> = Vec::new();
+        form.files.retain(|f| {
+            let mine = f.part == name;
+            if mine {
+                files.push(f.data.clone());
+            }
+            !mine
+        });
+        match files.len() {
+            0 | 1 => Ok(files.pop()),
+            _ => Err(ApiError::InvalidArgument(format!("one '{name}' part per frame"))),
         }
-        (Some(file), _) => Some(file.data),
-        (None, body) => body.filter(|b| !b.is_empty()),
     };
-    fields_from_text(form.fields, image)
+    let (image, depth) = (part("image")?, part("depth")?);
+    let image = image.or(form.body.filter(|b| !b.is_empty()));
+    fields_from_text(form.fields, image, depth)
 }
 
 fn content_type(req: &Request) -> String {
@@ -133,9 +150,13 @@ fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
 }
 
 pub fn content(f: &mut FrameFields) -> Result<Content, ApiError> {
+    let depth = f.depth.take();
     match (f.image.take(), f.descriptor.take()) {
         (Some(_), Some(_)) => Err(ApiError::InvalidArgument("send an image or a descriptor, not both".into())),
-        (Some(img), None) => Ok(Content::Image(img)),
+        (Some(image), None) => Ok(Content::Image { image, depth }),
+        (None, _) if depth.is_some() => {
+            Err(ApiError::InvalidArgument("a 'depth' part goes with an 'image' part".into()))
+        }
         (None, Some(d)) => Ok(Content::Descriptor(d)),
         (None, None) => Err(ApiError::InvalidArgument("an image or a descriptor is required".into())),
     }

@@ -125,6 +125,9 @@ pub struct ExportParams {
     /// Default 0.02.
     #[param(exclusive_minimum = 0, maximum = 1000000)]
     loop_sigma_rad: Option<f64>,
+    /// Only loops a client accepted with a relative pose become edges (default false: verified
+    /// metric loops no client rejected too).
+    accepted_only: Option<bool>,
 }
 
 /// The session's loop graph as a tar: frames.csv, loops.csv, graph.g2o (g2o SE3:QUAT), trajectories/<robot>.tum
@@ -155,10 +158,11 @@ pub async fn export(
         odometry_rad: sigma("odometry_sigma_rad", p.odometry_sigma_rad, d.odometry_rad)?,
         loop_m: sigma("loop_sigma_m", p.loop_sigma_m, d.loop_m)?,
         loop_rad: sigma("loop_sigma_rad", p.loop_sigma_rad, d.loop_rad)?,
+        accepted_only: p.accepted_only.unwrap_or(false),
     };
     let snapshot = s.service.scoped(caller).snapshot(&id).await?;
     // Building the tar walks every frame: off the request threads.
-    let tar = tokio::task::spawn_blocking(move || crate::export::tar(&snapshot, noise))
+    let (tar, counts) = tokio::task::spawn_blocking(move || crate::export::tar(&snapshot, noise))
         .await
         .map_err(|e| ApiError::Internal(format!("export worker failed: {e}")))?
         .map_err(|e| ApiError::Internal(format!("building the export: {e}")))?;
@@ -167,6 +171,8 @@ pub async fn export(
         [
             (axum::http::header::CONTENT_TYPE, "application/x-tar".to_string()),
             (axum::http::header::CONTENT_DISPOSITION, name),
+            (axum::http::HeaderName::from_static("x-loopd-loop-edges"), counts.edges.to_string()),
+            (axum::http::HeaderName::from_static("x-loopd-loops-left-out"), counts.summary()),
         ],
         tar,
     ))

@@ -275,9 +275,10 @@ async fn run(
                 let embed = engine.embed_image(f.image.clone(), crate::model::network::Variant::FULL);
                 let extract = async {
                     match features {
-                        true => {
-                            verifier.extract(f.image.clone(), limits).await.map_err(crate::api::service::no_features)
-                        }
+                        true => verifier
+                            .extract(f.image.clone(), limits, false)
+                            .await
+                            .map_err(crate::api::service::no_features),
                         false => Err("feature extraction is off".to_string()),
                     }
                 };

@@ -58,7 +58,13 @@ struct Prepared {
 
 /// A frame's picture: image bytes to embed, or a descriptor computed elsewhere.
 pub enum Content {
-    Image(Bytes),
+    /// An encoded image, and the depth image registered to it if the frame has one (16-bit in
+    /// the session camera's `depth_scale` units, or float metres): loops verified with it get
+    /// metric poses.
+    Image {
+        image: Bytes,
+        depth: Option<Bytes>,
+    },
     Descriptor(Vec<f32>),
     /// An image of this server's model embedded, and its features extracted, ahead (sequence
     /// jobs do both in batches): it is verified and kept like an image sent to `add_and_query`.
@@ -327,6 +333,9 @@ impl LoopService {
         defaults.validate().map_err(ApiError::from)?;
         if let Some(c) = &req.camera {
             intrinsics(c).validate().map_err(|e| ApiError::InvalidArgument(format!("camera: {e}")))?;
+            if let Some(s) = c.depth_scale.filter(|s| !(s.is_finite() && *s > 0.0)) {
+                return Err(ApiError::InvalidArgument(format!("camera: depth_scale {s} must be a finite number > 0")));
+            }
         }
         let descriptor_id = self.engine.info().descriptor_id.clone();
         let meta = self
@@ -403,23 +412,36 @@ impl LoopService {
                 };
                 return Ok(Prepared { descriptor, features, thumbnail: None });
             }
-            Content::Image(bytes) => bytes,
+            Content::Image { image, depth } => (image, depth),
         };
+        let (bytes, depth) = bytes;
         self.check_space(s)?;
+        let scale = s.meta.camera.as_ref().map_or(crate::verify::depth::DEFAULT_DEPTH_SCALE, |c| c.depth_scale());
         // The engine's queue first: a refused image (overload) is neither decoded nor searched
         // for features, so a refusal stays cheap while the model is busy.
         let admission = self.engine.admit()?;
         let limits = self.engine.info().limits;
+        // A depth image is decoded before anything else: a bad one is refused, nothing stored.
+        let depth = match depth {
+            Some(d) if features => Some(self.verifier.decode_depth(d, scale, limits).await.map_err(bad_depth)?),
+            _ => None,
+        };
         let embed = self.engine.embed_admitted(admission, bytes.clone(), Variant::FULL);
         let extract = async {
             match features {
-                true => self.verifier.extract(bytes.clone(), limits).await.map_err(no_features),
-                false => Err("feature extraction is off".to_string()),
+                true => match self.verifier.extract(bytes.clone(), limits, depth.is_some()).await {
+                    Ok(mut f) => match &depth {
+                        Some(d) => d.attach(&mut f).map(|_| Ok(f)).map_err(bad_depth),
+                        None => Ok(Ok(f)),
+                    },
+                    Err(e) => Ok(Err(no_features(e))),
+                },
+                false => Ok(Err("feature extraction is off".to_string())),
             }
         };
         let (descriptor, extracted, thumbnail) =
             tokio::join!(embed, extract, make_thumbnail(&bytes, limits, thumbnail));
-        let features = match extracted {
+        let features = match extracted? {
             Ok(f) => QueryFeatures::Some(Arc::new(f)),
             Err(why) => QueryFeatures::None(why),
         };
@@ -445,6 +467,11 @@ impl LoopService {
         let ids = self.store.add_frames(s, vec![frame]).await?;
         ids.first().copied().ok_or_else(|| ApiError::Internal("no frame id returned".into()))
     }
+}
+
+/// A depth image the server cannot use: refused (400 / INVALID_ARGUMENT), nothing stored.
+fn bad_depth(e: crate::verify::VerifyError) -> ApiError {
+    ApiError::InvalidArgument(e.to_string())
 }
 
 /// Why a query has no features, as its answers say (the image still embeds: an image ORB cannot

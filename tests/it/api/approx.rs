@@ -116,6 +116,7 @@ async fn query(
         content: Some(content),
         options: Some(pb::QueryOptions { verify: Some(false), ..*o }),
         timestamp: at,
+        depth: Default::default(),
     };
     c.query(req).await.unwrap().into_inner().matches
 }

@@ -35,6 +35,7 @@ fn fake(n: usize) -> Features {
         points: (0..n).map(|i| [i as f32, i as f32]).collect(),
         descriptors: (0..n).map(|i| [i as u8; 32]).collect(),
         descriptor_bytes: 32,
+        depths: Vec::new(),
     }
 }
 

@@ -1,3 +1,4 @@
 mod api;
+mod depth;
 mod inputs;
 mod real;

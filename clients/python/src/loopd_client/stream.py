@@ -31,6 +31,9 @@ class Frame:
     pose: Optional[pb.Pose] = None
     metadata_json: str = ""
     idempotency_key: Optional[str] = None
+    # A depth image registered to `image` (16-bit PNG/PGM/TIFF in the session camera's
+    # depth_scale units per metre, or float TIFF in metres): its verified loops get metric poses.
+    depth: Optional[bytes] = None
 
 
 @dataclass
