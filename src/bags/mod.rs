@@ -4,6 +4,7 @@
 mod mcap_bag;
 pub mod msgs;
 pub mod pixels;
+pub mod poses;
 mod ros1;
 
 use msgs::{ImageKind, Wire};
@@ -56,13 +57,34 @@ pub struct Selection {
     pub every: usize,
     /// Smallest step between kept frames of a topic, in seconds of header stamp.
     pub min_dt: f64,
+    /// The camera's pose (Odometry, PoseStamped or PoseWithCovarianceStamped), interpolated to
+    /// each frame's stamp ([`poses::Track::at`]).
+    pub pose_topic: Option<String>,
+    /// The camera's registered depth images (16UC1 mm or 32FC1 m), nearest in stamp.
+    pub depth_topic: Option<String>,
+    /// Instead of a pose topic: the camera frame's pose in this frame from `/tf` and
+    /// `/tf_static` (with `camera_frame`).
+    pub odom_frame: Option<String>,
+    pub camera_frame: Option<String>,
 }
 
 impl Default for Selection {
     fn default() -> Self {
-        Self { topics: Vec::new(), every: 1, min_dt: 0.0 }
+        Self {
+            topics: Vec::new(),
+            every: 1,
+            min_dt: 0.0,
+            pose_topic: None,
+            depth_topic: None,
+            odom_frame: None,
+            camera_frame: None,
+        }
     }
 }
+
+/// The tf topics read for `odom_frame` / `camera_frame`.
+const TF: &str = "/tf";
+const TF_STATIC: &str = "/tf_static";
 
 #[derive(Debug)]
 pub struct BagFrame {
@@ -75,6 +97,10 @@ pub struct BagFrame {
     pub robot_id: Option<String>,
     /// JPEG or PNG as sent for a compressed image; a lossless PNG for a raw one.
     pub image: Vec<u8>,
+    /// From the pose topic, when asked for and it covers the stamp.
+    pub pose: Option<crate::index::query::Pose>,
+    /// From the depth topic, when asked for and one is within [`poses::MAX_DEPTH_DT_S`].
+    pub depth: Option<crate::verify::depth::DepthImage>,
 }
 
 /// The robot a topic belongs to: the first name of a topic three or more names deep.
@@ -129,6 +155,7 @@ fn listing(topics: &[TopicInfo]) -> String {
 
 /// The topics to read: those asked for, which must be image topics of the bag, or its only one.
 fn chosen(sel: &Selection, topics: &[TopicInfo]) -> Result<Vec<String>, BagError> {
+    check_pose_and_depth(sel, topics)?;
     let images: Vec<&TopicInfo> = topics.iter().filter(|t| t.image).collect();
     if sel.topics.is_empty() {
         return match images.as_slice() {
@@ -157,6 +184,35 @@ fn chosen(sel: &Selection, topics: &[TopicInfo]) -> Result<Vec<String>, BagError
     Ok(sel.topics.clone())
 }
 
+/// The pose and depth topics asked for exist and have their types (tf: the bag has /tf).
+fn check_pose_and_depth(sel: &Selection, topics: &[TopicInfo]) -> Result<(), BagError> {
+    let need = |want: &Option<String>, what: &str, ok: &dyn Fn(&str) -> bool| -> Result<(), BagError> {
+        let Some(want) = want else { return Ok(()) };
+        match topics.iter().find(|t| &t.topic == want) {
+            Some(t) if ok(&t.msg_type) => Ok(()),
+            Some(t) => Err(BagError::Topics(format!("topic {want} is {}, not {what}", t.msg_type))),
+            None => Err(BagError::Topics(format!("the bag has no topic {want}; its topics: {}", listing(topics)))),
+        }
+    };
+    need(
+        &sel.pose_topic,
+        "a pose (nav_msgs/Odometry, geometry_msgs/PoseStamped or PoseWithCovarianceStamped)",
+        &|t| poses::PoseKind::of(t).is_some(),
+    )?;
+    need(&sel.depth_topic, "a depth image (sensor_msgs/Image)", &|t| ImageKind::of(t) == Some(ImageKind::Raw))?;
+    match (&sel.odom_frame, &sel.camera_frame, &sel.pose_topic) {
+        (None, None, _) => {}
+        (Some(_), Some(_), None) => {
+            need(&Some(TF.to_string()), "tf2_msgs/TFMessage", &|t| t.replace("/msg/", "/") == "tf2_msgs/TFMessage")?
+        }
+        (Some(_), Some(_), Some(_)) => {
+            return Err(BagError::Topics("a pose topic or odom_frame + camera_frame (tf), not both".into()))
+        }
+        _ => return Err(BagError::Topics("odom_frame and camera_frame go together".into())),
+    }
+    Ok(())
+}
+
 /// Per topic: messages seen, stamp of the last kept frame.
 #[derive(Default)]
 struct Thinning {
@@ -177,7 +233,36 @@ pub fn frames(parts: &[&[u8]], sel: &Selection, limits: &Limits) -> Result<Vec<B
     let every = sel.every.max(1);
     let mut state: HashMap<String, Thinning> = wanted.iter().map(|t| (t.clone(), Thinning::default())).collect();
     let mut out: Vec<(u64, BagFrame)> = Vec::new();
+    let mut track = poses::Track::default();
+    let mut tf = poses::TfTree::default();
+    let use_tf = sel.odom_frame.is_some();
+    // Each depth message's stamp, by its place in the topic: decoded in a second pass, only those
+    // nearest a frame.
+    let mut depth_stamps: Vec<f64> = Vec::new();
     each(parts, limits, &mut |topic, tp, wire, time, bytes| {
+        if sel.pose_topic.as_deref() == Some(topic) {
+            let index = track.len();
+            let bad = |why: String| BagError::Message { topic: topic.into(), index, why };
+            let kind = poses::PoseKind::of(tp).ok_or_else(|| bad(format!("{tp} is not a pose type")))?;
+            let (stamp, pose) =
+                poses::pose_message(kind, wire.ok_or_else(|| bad("not CDR".into()))?, bytes).map_err(bad)?;
+            track.push(if stamp > 0.0 { stamp } else { time as f64 * 1e-9 }, &pose);
+        }
+        if use_tf && (topic == TF || topic == TF_STATIC) && tp.replace("/msg/", "/") == "tf2_msgs/TFMessage" {
+            let bad = |why: String| BagError::Message { topic: topic.into(), index: 0, why };
+            for (stamp, parent, child, pose) in
+                poses::tf_message(wire.ok_or_else(|| bad("not CDR".into()))?, bytes).map_err(bad)?
+            {
+                let stamp = if stamp > 0.0 { stamp } else { time as f64 * 1e-9 };
+                tf.push(stamp, parent, child, &pose, topic == TF_STATIC);
+            }
+        }
+        if sel.depth_topic.as_deref() == Some(topic) {
+            let index = depth_stamps.len();
+            let bad = |why: String| BagError::Message { topic: topic.into(), index, why };
+            let m = msgs::raw_image(wire.ok_or_else(|| bad("not CDR".into()))?, bytes).map_err(bad)?;
+            depth_stamps.push(if m.stamp > 0.0 { m.stamp } else { time as f64 * 1e-9 });
+        }
         let Some(st) = state.get_mut(topic) else { return Ok(()) };
         let index = st.seen;
         st.seen += 1;
@@ -209,12 +294,70 @@ pub fn frames(parts: &[&[u8]], sel: &Selection, limits: &Limits) -> Result<Vec<B
             Pixels::Raw(raw) => pixels::to_png(&raw).map_err(bad)?,
             Pixels::Encoded(data) => data.to_vec(),
         };
-        out.push((time, BagFrame { topic: topic.into(), index, stamp, robot_id: robot_of(topic), image }));
+        let frame =
+            BagFrame { topic: topic.into(), index, stamp, robot_id: robot_of(topic), image, pose: None, depth: None };
+        out.push((time, frame));
         Ok(())
     })?;
     // Topics interleave by recording time; a stable sort keeps each topic's own order.
     out.sort_by_key(|(time, _)| *time);
-    Ok(out.into_iter().map(|(_, f)| f).collect())
+    let mut out: Vec<BagFrame> = out.into_iter().map(|(_, f)| f).collect();
+    track.finish();
+    tf.finish();
+    for f in &mut out {
+        f.pose = match (&sel.odom_frame, &sel.camera_frame) {
+            (Some(odom), Some(camera)) => tf.at(f.stamp, odom, camera),
+            _ => track.at(f.stamp),
+        };
+    }
+    if let Some(depth_topic) = &sel.depth_topic {
+        attach_depth(parts, limits, depth_topic, &depth_stamps, &mut out)?;
+    }
+    Ok(out)
+}
+
+/// Gives each frame the depth image nearest its stamp (within [`poses::MAX_DEPTH_DT_S`]),
+/// decoding only those in a second pass over the bag.
+fn attach_depth(
+    parts: &[&[u8]],
+    limits: &Limits,
+    topic: &str,
+    stamps: &[f64],
+    frames: &mut [BagFrame],
+) -> Result<(), BagError> {
+    let mut order: Vec<usize> = (0..stamps.len()).collect();
+    order.sort_by(|&a, &b| stamps[a].total_cmp(&stamps[b]));
+    let sorted: Vec<f64> = order.iter().map(|&i| stamps[i]).collect();
+    // Which depth message each frame takes, and the frames waiting for each message.
+    let mut wanted: HashMap<usize, Vec<usize>> = HashMap::new();
+    for (fi, f) in frames.iter().enumerate() {
+        let at = sorted.partition_point(|&s| s < f.stamp);
+        let nearest = [at.checked_sub(1), Some(at).filter(|&i| i < sorted.len())]
+            .into_iter()
+            .flatten()
+            .min_by(|&a, &b| (sorted[a] - f.stamp).abs().total_cmp(&(sorted[b] - f.stamp).abs()));
+        if let Some(k) = nearest.filter(|&k| (sorted[k] - f.stamp).abs() <= poses::MAX_DEPTH_DT_S) {
+            wanted.entry(order[k]).or_default().push(fi);
+        }
+    }
+    if wanted.is_empty() {
+        return Ok(());
+    }
+    let mut index = 0;
+    each(parts, limits, &mut |t, _, wire, _, bytes| {
+        if t != topic {
+            return Ok(());
+        }
+        let i = index;
+        index += 1;
+        let Some(takers) = wanted.get(&i) else { return Ok(()) };
+        let bad = |why: String| BagError::Message { topic: topic.into(), index: i, why };
+        let depth = poses::depth_message(wire.ok_or_else(|| bad("not CDR".into()))?, bytes).map_err(bad)?;
+        for &fi in takers {
+            frames[fi].depth = depth.clone();
+        }
+        Ok(())
+    })
 }
 
 #[cfg(test)]

@@ -48,9 +48,9 @@ pub struct CompressedImage<'a> {
 }
 
 #[derive(Deserialize)]
-struct Time {
-    sec: i32,
-    nanosec: u32,
+pub(super) struct Time {
+    pub(super) sec: i32,
+    pub(super) nanosec: u32,
 }
 
 #[derive(Deserialize)]
@@ -78,12 +78,12 @@ struct CdrCompressed<'a> {
     data: &'a [u8],
 }
 
-fn seconds(sec: i64, nanosec: u32) -> f64 {
+pub(super) fn seconds(sec: i64, nanosec: u32) -> f64 {
     sec as f64 + nanosec as f64 * 1e-9
 }
 
 /// CDR's 4-byte encapsulation header says the byte order of what follows.
-fn cdr<'a, T: Deserialize<'a>>(bytes: &'a [u8]) -> Result<T, String> {
+pub(super) fn cdr<'a, T: Deserialize<'a>>(bytes: &'a [u8]) -> Result<T, String> {
     let (head, body) = bytes.split_at_checked(4).ok_or("shorter than its CDR header")?;
     let value = match head[1] {
         0 => cdr_encoding::from_bytes::<T, byteorder::BigEndian>(body),
@@ -94,7 +94,7 @@ fn cdr<'a, T: Deserialize<'a>>(bytes: &'a [u8]) -> Result<T, String> {
 }
 
 /// ROS 1 serialisation: little-endian, no padding, strings and arrays prefixed by a u32 length.
-struct Ros1<'a>(&'a [u8]);
+pub(super) struct Ros1<'a>(pub(super) &'a [u8]);
 
 impl<'a> Ros1<'a> {
     fn bytes(&mut self, n: usize) -> Result<&'a [u8], String> {
@@ -102,7 +102,11 @@ impl<'a> Ros1<'a> {
         self.0 = rest;
         Ok(head)
     }
-    fn u32(&mut self) -> Result<u32, String> {
+    pub(super) fn f64(&mut self) -> Result<f64, String> {
+        let b = self.bytes(8)?;
+        Ok(f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
+    }
+    pub(super) fn u32(&mut self) -> Result<u32, String> {
         let b = self.bytes(4)?;
         Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     }
@@ -113,15 +117,19 @@ impl<'a> Ros1<'a> {
         let n = self.u32()? as usize;
         self.bytes(n)
     }
-    fn string(&mut self) -> Result<String, String> {
+    pub(super) fn string(&mut self) -> Result<String, String> {
         String::from_utf8(self.array()?.to_vec()).map_err(|_| "a string field is not UTF-8".to_string())
     }
     /// std_msgs/Header: seq, stamp (secs, nsecs), frame_id. Returns the stamp.
-    fn header(&mut self) -> Result<f64, String> {
+    pub(super) fn header(&mut self) -> Result<f64, String> {
+        Ok(self.header_frame()?.0)
+    }
+    /// std_msgs/Header's stamp and frame_id.
+    pub(super) fn header_frame(&mut self) -> Result<(f64, String), String> {
         self.u32()?;
         let (sec, nsec) = (self.u32()?, self.u32()?);
-        self.string()?;
-        Ok(seconds(sec as i64, nsec))
+        let frame = self.string()?;
+        Ok((seconds(sec as i64, nsec), frame))
     }
 }
 

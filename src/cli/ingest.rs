@@ -28,6 +28,25 @@ pub struct IngestArgs {
     /// Smallest step between kept frames of a topic (seconds of header stamp).
     #[arg(long, default_value_t = 0.0)]
     min_dt: f64,
+    /// The camera's pose for each frame (nav_msgs/Odometry, geometry_msgs/PoseStamped or
+    /// PoseWithCovarianceStamped), interpolated to the image's stamp: the exported graph.g2o
+    /// gets a vertex per frame and odometry edges.
+    #[arg(long, conflicts_with_all = ["odom_frame", "camera_frame"])]
+    pose_topic: Option<String>,
+    /// Instead of --pose-topic: the camera frame's pose in this frame (e.g. odom or map) from
+    /// /tf and /tf_static, interpolated to the image's stamp (with --camera-frame).
+    #[arg(long, requires = "camera_frame")]
+    odom_frame: Option<String>,
+    /// The camera's tf frame (with --odom-frame).
+    #[arg(long, requires = "odom_frame")]
+    camera_frame: Option<String>,
+    /// The camera's registered depth images (sensor_msgs/Image 16UC1 mm or 32FC1 m), nearest in
+    /// stamp within 50 ms: verified loops get metric poses (needs --camera).
+    #[arg(long)]
+    depth_topic: Option<String>,
+    /// Create the session with this camera: fx,fy,cx,cy[,k1,k2,p1,p2,k3] in pixels.
+    #[arg(long, value_delimiter = ',')]
+    camera: Option<Vec<f64>>,
     /// Every frame's robot (default: from the topic's namespace, /robot1/cam/image_raw ->
     /// robot1, else "sequence").
     #[arg(long)]
@@ -105,9 +124,19 @@ fn list_topics(files: &[PathBuf]) -> Result<()> {
 }
 
 /// Creates the session unless it exists; true when this call created it.
-fn ensure_session(remote: &Http, id: &str, thumbnails: bool) -> Result<bool> {
+fn ensure_session(remote: &Http, id: &str, thumbnails: bool, camera: Option<&[f64]>) -> Result<bool> {
     let create = remote.client.post(format!("{}/v1/sessions", remote.base));
-    let r = remote.call(create.json(&serde_json::json!({ "id": id, "name": id, "thumbnails": thumbnails })))?;
+    let mut body = serde_json::json!({ "id": id, "name": id, "thumbnails": thumbnails });
+    match camera {
+        Some(&[fx, fy, cx, cy]) => body["camera"] = serde_json::json!({ "fx": fx, "fy": fy, "cx": cx, "cy": cy }),
+        Some(&[fx, fy, cx, cy, k1, k2, p1, p2, k3]) => {
+            let distortion = [k1, k2, p1, p2, k3];
+            body["camera"] = serde_json::json!({ "fx": fx, "fy": fy, "cx": cx, "cy": cy, "distortion": distortion })
+        }
+        Some(other) => bail!("--camera takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,p1,p2,k3; got {} values", other.len()),
+        None => {}
+    }
+    let r = remote.call(create.json(&body))?;
     if r.status() == reqwest::StatusCode::CONFLICT {
         return Ok(false); // it exists: the frames go on after its own
     }
@@ -133,6 +162,12 @@ fn upload(remote: &Http, a: &IngestArgs, session: &str, files: &[PathBuf]) -> Re
         .text("min_dt", a.min_dt.to_string());
     if !a.topic.is_empty() {
         form = form.text("topic", a.topic.join(","));
+    }
+    let frames = [("odom_frame", &a.odom_frame), ("camera_frame", &a.camera_frame)];
+    for (k, v) in [("pose_topic", &a.pose_topic), ("depth_topic", &a.depth_topic)].into_iter().chain(frames) {
+        if let Some(v) = v {
+            form = form.text(k, v.clone());
+        }
     }
     let options = [
         ("robot_id", a.robot_id.clone()),
@@ -183,7 +218,7 @@ pub fn run(a: IngestArgs) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     };
     let remote = a.remote.connect()?;
-    let created = ensure_session(&remote, &session, a.thumbnails)?;
+    let created = ensure_session(&remote, &session, a.thumbnails, a.camera.as_deref())?;
     let job = match upload(&remote, &a, &session, &files) {
         Ok(job) => job,
         Err(e) => {

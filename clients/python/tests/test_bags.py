@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import pathlib
 import subprocess
 import tarfile
 import time
@@ -257,6 +258,10 @@ def test_broken_bags_are_400s_that_say_what_is_wrong(server, key, tmp_path):
         "two image topics, none named": (one_file(bagmaker._write_rosbag2(tmp_path / "two", two, "zstd", None)), {},
                                          "several image topics"),
         "every 0": (lz4, {"every": 0}, "every"),
+        "a pose topic that is not a pose": (lz4, {"pose_topic": "/imu"}, "not a pose"),
+        "a depth topic that is not an image": (lz4, {"depth_topic": "/robot1/status"}, "not a depth image"),
+        "tf without a /tf topic": (lz4, {"odom_frame": "odom", "camera_frame": "cam"}, "no topic /tf"),
+        "an odom frame without a camera frame": (lz4, {"odom_frame": "odom"}, "go together"),
         "garbage": (None, {}, "tar"),
     }
     session(server, key, "broken")
@@ -269,3 +274,112 @@ def test_broken_bags_are_400s_that_say_what_is_wrong(server, key, tmp_path):
     # Nothing was stored, and the server goes on.
     assert call(server, key, "GET", "/v1/sessions/broken")[1]["frames"] == 0
     assert upload(server, key, "after-broken", lz4.read_bytes())["done"] == 12
+
+
+def rgbd_bag(folder, poses):
+    """A bag made here from rgbd-slambook2/tum-desk: colour (CompressedImage), depth (16UC1 Image,
+    stamped 10 ms after the colour) and the camera's drifted poses (each step 10% long), as
+    nav_msgs/Odometry on /odom (poses="odom") or as /tf odom -> base_link with a fixed
+    base_link -> cam on /tf_static (poses="tf"), 0.4 s before and after each image (interpolated
+    to it) and none near the last image. Its folder and the drifted camera poses."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    ts = bagmaker.TS2
+    desk = DATA / "rgbd-slambook2/tum-desk"
+    true = []
+    for line in (desk / "pose.txt").read_text().split("\n")[:5]:
+        x, y, z, qx, qy, qz, qw = map(float, line.split())
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = Rotation.from_quat([qx, qy, qz, qw]).as_matrix(), [x, y, z]
+        true.append(T)
+    drift = [true[0]]
+    for a, b in zip(true, true[1:]):
+        inc = np.linalg.inv(a) @ b
+        inc[:3, 3] *= 1.1
+        drift.append(drift[-1] @ inc)
+    stamps = [T0 + 3.0 * i for i in range(5)]
+    msgs = []
+    for i, t in enumerate(stamps):
+        ns = round(t * 1e9)
+        msgs.append(("/cam/image_raw/compressed", "sensor_msgs/msg/CompressedImage", ns,
+                     {"header": {"stamp": ns, "frame_id": "cam"}, "format": "png",
+                      "data": (desk / f"color/{i + 1}.png").read_bytes()}))
+        h, w, step, data = bagmaker.raw_pixels(desk / f"depth/{i + 1}.pgm", "mono16")
+        dns = ns + 10_000_000
+        msgs.append(("/cam/depth", "sensor_msgs/msg/Image", dns, {"header": {"stamp": dns, "frame_id": "cam"},
+                     "height": h, "width": w, "encoding": "16UC1", "is_bigendian": 0, "step": step, "data": data}))
+
+    def pose_fields(T):
+        qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
+        return {"x": T[0, 3], "y": T[1, 3], "z": T[2, 3]}, {"x": qx, "y": qy, "z": qz, "w": qw}
+
+    # base_link -> cam: the camera 10 cm ahead, 20 cm up, looking along base_link's x.
+    base_cam = np.eye(4)
+    base_cam[:3, :3] = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix()
+    base_cam[:3, 3] = [0.1, 0.0, 0.2]
+
+    def tf(ns, parent, child, T):
+        t, q = pose_fields(T)
+        stamped = bagmaker.build(ts, "geometry_msgs/msg/TransformStamped", {
+            "header": {"stamp": ns, "frame_id": parent}, "child_frame_id": child,
+            "transform": {"translation": t, "rotation": q}})
+        return ts.types["tf2_msgs/msg/TFMessage"](transforms=[stamped])
+
+    if poses == "tf":
+        msgs.append(("/tf_static", "tf2_msgs/msg/TFMessage", round(T0 * 1e9) - 1, tf(0, "base_link", "cam", base_cam)))
+    for i in range(4):
+        for dt in (-0.4, 0.4):
+            ns = round((stamps[i] + dt) * 1e9)
+            if poses == "odom":
+                t, q = pose_fields(drift[i])
+                msgs.append(("/odom", "nav_msgs/msg/Odometry", ns, {
+                    "header": {"stamp": ns, "frame_id": "odom"}, "child_frame_id": "cam",
+                    "pose": {"pose": {"position": t, "orientation": q}}}))
+            else:
+                msgs.append(("/tf", "tf2_msgs/msg/TFMessage", ns,
+                             tf(ns, "odom", "base_link", drift[i] @ np.linalg.inv(base_cam))))
+    folder = pathlib.Path(folder)
+    with bagmaker.Ros2Writer(folder, version=9, storage_plugin=bagmaker.StoragePlugin.MCAP) as bag:
+        conns = {}
+        for topic, msgtype, t, fields in sorted(msgs, key=lambda m: m[2]):
+            if topic not in conns:
+                conns[topic] = bag.add_connection(topic, msgtype, typestore=ts)
+            msg = bagmaker.build(ts, msgtype, fields) if isinstance(fields, dict) else fields
+            bag.write(conns[topic], t, ts.serialize_cdr(msg, msgtype))
+    return folder, drift
+
+
+@pytest.mark.parametrize("poses", ["odom", "tf"])
+def test_an_rgbd_bag_with_odometry_comes_out_as_a_loop_graph(server, key, tmp_path, poses):
+    """rgbd_bag through `loopd ingest --depth-topic --camera` and --pose-topic or --odom-frame
+    --camera-frame: the export's graph.g2o has a vertex for each frame the poses cover (at the
+    drifted camera pose) and metric loop edges without any verdict; the frame they do not cover
+    is stored without a pose and the export says its loops were left out for it."""
+    bag, drift = rgbd_bag(tmp_path / "rgbd", poses)
+    source = ["--pose-topic", "/odom"] if poses == "odom" else ["--odom-frame", "odom", "--camera-frame", "cam"]
+    name = f"rgbd-{poses}"
+    job = ingest(server, bag, "--session", name, "--topic", "/cam/image_raw/compressed", *source,
+                 "--depth-topic", "/cam/depth", "--camera", "518,519,325.5,253.5",
+                 "--exclude-last-frames", "0", "--min-confidence", "0", "--sequence", "false")
+    assert (job["state"], job["total"], job["errors"]) == ("done", 5, []), job
+    status, frames = call(server, key, "GET", f"/v1/sessions/{name}/frames", query={"limit": 10})
+    assert status == 200, frames
+    posed = [f for f in frames["frames"] if f.get("pose")]
+    assert len(posed) == 4, frames
+    for f, T in zip(posed, drift):
+        got = [f["pose"][k] for k in "xyz"]
+        assert max(abs(a - b) for a, b in zip(got, T[:3, 3])) < 1e-6, (f, T)
+
+    out = subprocess.run([str(BIN), "export", name, "--out", tmp_path / "rgbd.tar", "--server",
+                          f"https://127.0.0.1:{server.http_port}", "--ca", str(server.ca),
+                          "--key-file", str(server.root / "bags.key")], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    with tarfile.open(tmp_path / "rgbd.tar") as t:
+        g2o = t.extractfile("graph.g2o").read().decode().splitlines()
+        readme = t.extractfile("README.txt").read().decode()
+    assert sum(l.startswith("VERTEX_SE3:QUAT") for l in g2o) == 4
+    loop_edges = [l for l in g2o if l.startswith("EDGE_SE3:QUAT")][3:]  # after 3 odometry edges
+    assert len(loop_edges) >= 2, (g2o, readme)
+    assert "1 without a pose at an end" in readme, readme
+    assert "graph.g2o:" in out.stderr and "loop edges" in out.stderr, out.stderr

@@ -152,6 +152,17 @@ pub struct SequenceFields {
     /// Bags: smallest step between kept frames of a topic, in seconds of header stamp (default 0).
     #[param(minimum = 0)]
     min_dt: Option<f64>,
+    /// Bags: the camera's pose topic (nav_msgs/Odometry, geometry_msgs/PoseStamped or
+    /// PoseWithCovarianceStamped), interpolated to each image's stamp (not across 1 s gaps).
+    pose_topic: Option<String>,
+    /// Bags: the camera's registered depth images (sensor_msgs/Image 16UC1 mm or 32FC1 m),
+    /// the nearest within 50 ms of each image: verified loops get metric poses.
+    depth_topic: Option<String>,
+    /// Bags, instead of pose_topic: the frame the camera's pose is taken in from /tf and
+    /// /tf_static (with camera_frame).
+    odom_frame: Option<String>,
+    /// Bags: the camera's tf frame (with odom_frame).
+    camera_frame: Option<String>,
 }
 
 /// A sequence as a multipart form: image files, one tar archive, or the files of a bag, with

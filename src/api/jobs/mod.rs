@@ -275,16 +275,24 @@ async fn run(
                 let embed = engine.embed_image(f.image.clone(), crate::model::network::Variant::FULL);
                 let extract = async {
                     match features {
-                        true => verifier
-                            .extract(f.image.clone(), limits, false)
-                            .await
-                            .map_err(crate::api::service::no_features),
+                        true => {
+                            let mut x = verifier
+                                .extract(f.image.clone(), limits, f.depth.is_some())
+                                .await
+                                .map_err(crate::api::service::no_features)?;
+                            // Depth of another size than the image: the frame goes without it.
+                            if let Some(Err(e)) = f.depth.as_ref().map(|d| d.attach(&mut x)) {
+                                tracing::warn!(frame = %f.name, error = %e, "bag depth image not used");
+                            }
+                            Ok(x)
+                        }
                         false => Err("feature extraction is off".to_string()),
                     }
                 };
                 let (result, extracted, thumbnail) =
                     tokio::join!(embed, extract, make_thumbnail(&f.image, limits, thumbnails));
-                (i, f.name, f.robot_id, f.timestamp, result.map(|d| (d, extracted)), thumbnail)
+                let place = (f.robot_id, f.timestamp, f.pose);
+                (i, f.name, place, result.map(|d| (d, extracted)), thumbnail)
             })))
         })
         .buffered(width);
@@ -292,7 +300,7 @@ async fn run(
     let mut failed = None;
     let mut saved = std::time::Instant::now();
     while let Some(prepared) = embedded.next().await {
-        let (i, name, robot_id, timestamp, result, thumbnail) = match prepared {
+        let (i, name, (robot_id, timestamp, pose), result, thumbnail) = match prepared {
             Ok(p) => p,
             Err(e) => {
                 failed = Some(format!("preparing a frame: {e}"));
@@ -318,7 +326,7 @@ async fn run(
             robot_id: robot_id.unwrap_or_else(|| seq.robot_id.clone()),
             timestamp: timestamp.or(Some(i as f64)),
             frame_id: None,
-            pose: None,
+            pose,
             metadata: Some(serde_json::json!({ "name": name, "index": i })),
             content: Content::Embedded { descriptor, features },
             thumbnail,

@@ -18,11 +18,15 @@ pub struct SeqFrame {
     pub robot_id: Option<String>,
     /// None: the frame's place in the sequence.
     pub timestamp: Option<f64>,
+    /// From a bag's pose topic.
+    pub pose: Option<crate::index::query::Pose>,
+    /// From a bag's depth topic.
+    pub depth: Option<crate::verify::depth::DepthImage>,
 }
 
 impl SeqFrame {
     fn file(name: String, image: Bytes) -> Self {
-        Self { name, image, robot_id: None, timestamp: None }
+        Self { name, image, robot_id: None, timestamp: None, pose: None, depth: None }
     }
 }
 
@@ -82,6 +86,10 @@ fn bag_selection(fields: &mut HashMap<String, String>) -> Result<Selection, ApiE
         sel.min_dt =
             v.parse().ok().filter(|s: &f64| s.is_finite() && *s >= 0.0).ok_or_else(|| bad_field("min_dt", &v))?;
     }
+    sel.pose_topic = fields.remove("pose_topic").filter(|t| !t.trim().is_empty());
+    sel.depth_topic = fields.remove("depth_topic").filter(|t| !t.trim().is_empty());
+    sel.odom_frame = fields.remove("odom_frame").filter(|t| !t.trim().is_empty());
+    sel.camera_frame = fields.remove("camera_frame").filter(|t| !t.trim().is_empty());
     Ok(sel)
 }
 
@@ -136,6 +144,8 @@ fn from_bag(parts: &[Bytes], sel: &Selection) -> Result<Vec<SeqFrame>, ApiError>
             image: Bytes::from(f.image),
             robot_id: f.robot_id,
             timestamp: Some(f.stamp),
+            pose: f.pose,
+            depth: f.depth,
         })
         .collect())
 }
@@ -168,8 +178,17 @@ impl SequenceRequest {
                 return Err(ApiError::InvalidArgument("send images or a bag, not both".into()));
             }
             frames = from_bag(&bag, &selection)?;
-        } else if !selection.topics.is_empty() || selection.every != 1 || selection.min_dt != 0.0 {
-            return Err(ApiError::InvalidArgument("topic, every and min_dt apply to bags only".into()));
+        } else if !selection.topics.is_empty()
+            || selection.every != 1
+            || selection.min_dt != 0.0
+            || selection.pose_topic.is_some()
+            || selection.depth_topic.is_some()
+            || selection.odom_frame.is_some()
+            || selection.camera_frame.is_some()
+        {
+            return Err(ApiError::InvalidArgument(
+                "topic, every, min_dt, pose_topic, depth_topic, odom_frame and camera_frame apply to bags only".into(),
+            ));
         }
         if frames.is_empty() {
             return Err(ApiError::InvalidArgument(
