@@ -41,9 +41,82 @@ pub struct Camera {
     /// millimetres; TUM RGB-D: 5000). Float depth images are in metres.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_scale: Option<f64>,
+    /// A stereo pair's right camera: frames may then carry the right image, and loops verified
+    /// against them get metric poses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stereo: Option<StereoCamera>,
+}
+
+/// The right camera of a stereo pair: either `baseline` (a rectified pair: the right camera is
+/// this camera moved `baseline` metres along its x axis), or the calibrated right camera
+/// (`right_intrinsics` fx fy cx cy, `right_distortion` k1 k2 p1 p2 k3) and its pose in the left
+/// camera (`rotation` row-major 3x3 and `translation` in metres: X_right = R X_left + t).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct StereoCamera {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub baseline: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<f64>>, min_items = 9, max_items = 9)]
+    pub rotation: Option<[f64; 9]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<f64>>, min_items = 3, max_items = 3)]
+    pub translation: Option<[f64; 3]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<f64>>, min_items = 4, max_items = 4)]
+    pub right_intrinsics: Option<[f64; 4]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<f64>>, min_items = 5, max_items = 5)]
+    pub right_distortion: Option<[f64; 5]>,
 }
 
 impl Camera {
+    pub fn intrinsics(&self) -> crate::verify::geometric::Intrinsics {
+        crate::verify::geometric::Intrinsics {
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            dist: self.distortion,
+        }
+    }
+
+    /// The stereo rig for images of this size, if the camera is one side of a pair; why not,
+    /// for a pair described wrongly.
+    pub fn stereo_rig(
+        &self,
+        width: u32,
+        height: u32,
+    ) -> Option<Result<crate::verify::stereo::StereoRig, crate::verify::VerifyError>> {
+        use crate::verify::stereo::StereoRig;
+        let s = self.stereo.as_ref()?;
+        let left = self.intrinsics();
+        Some(match (s.baseline, s.rotation, s.translation) {
+            (Some(b), None, None) => StereoRig::rectified(left, b, width, height),
+            (None, r, Some(t)) => {
+                let right = match s.right_intrinsics {
+                    Some([fx, fy, cx, cy]) => {
+                        crate::verify::geometric::Intrinsics { fx, fy, cx, cy, dist: s.right_distortion }
+                    }
+                    None => left,
+                };
+                StereoRig::new(
+                    left,
+                    right,
+                    r.unwrap_or([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]),
+                    t,
+                    width,
+                    height,
+                )
+            }
+            _ => Err(crate::verify::VerifyError::Invalid(
+                "stereo: give baseline (a rectified pair) or translation (and rotation, right_intrinsics) of the \
+                 right camera, not both"
+                    .into(),
+            )),
+        })
+    }
+
     /// Depth units per metre.
     pub fn depth_scale(&self) -> f64 {
         self.depth_scale.unwrap_or(crate::verify::depth::DEFAULT_DEPTH_SCALE)

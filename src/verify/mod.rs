@@ -11,6 +11,7 @@ pub mod geometric;
 mod matching;
 pub mod pool;
 pub mod sequence;
+pub mod stereo;
 
 use crate::index::query::Match;
 use confidence::{Calibrator, Evidence};

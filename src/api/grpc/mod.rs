@@ -72,7 +72,26 @@ fn camera(c: Option<pb::Camera>) -> Result<Option<Camera>, ApiError> {
         &[k1, k2, p1, p2, k3] => Some([k1, k2, p1, p2, k3]),
         d => return Err(ApiError::InvalidArgument(format!("camera distortion has {} values; 0 or 5", d.len()))),
     };
-    Ok(Some(Camera { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, distortion, depth_scale: c.depth_scale }))
+    let stereo = match c.stereo {
+        None => None,
+        Some(s) => {
+            fn fixed<const N: usize>(v: &[f64], name: &str) -> Result<Option<[f64; N]>, ApiError> {
+                match v.len() {
+                    0 => Ok(None),
+                    k if k == N => Ok(v.try_into().ok()),
+                    k => Err(ApiError::InvalidArgument(format!("camera stereo {name} has {k} values; 0 or {N}"))),
+                }
+            }
+            Some(crate::store::record::StereoCamera {
+                baseline: s.baseline,
+                rotation: fixed(&s.rotation, "rotation")?,
+                translation: fixed(&s.translation, "translation")?,
+                right_intrinsics: fixed(&s.right_intrinsics, "right_intrinsics")?,
+                right_distortion: fixed(&s.right_distortion, "right_distortion")?,
+            })
+        }
+    };
+    Ok(Some(Camera { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, distortion, depth_scale: c.depth_scale, stereo }))
 }
 
 /// An optional bytes field: empty is unset.
@@ -154,9 +173,11 @@ pub fn parse_add_frame(bytes: &[u8]) -> Result<(String, FrameInput, QueryOverrid
 
 fn frame_input(r: pb::AddFrameRequest) -> Result<(String, FrameInput, QueryOverrides), ApiError> {
     let content = match r.content {
-        Some(pb::add_frame_request::Content::Image(b)) => Content::Image { image: b, depth: depth(r.depth) },
-        Some(pb::add_frame_request::Content::Descriptor(_)) if !r.depth.is_empty() => {
-            return Err(ApiError::InvalidArgument("a depth image goes with an image, not a descriptor".into()))
+        Some(pb::add_frame_request::Content::Image(b)) => {
+            Content::Image { image: b, depth: depth(r.depth), right: depth(r.right) }
+        }
+        Some(pb::add_frame_request::Content::Descriptor(_)) if !r.depth.is_empty() || !r.right.is_empty() => {
+            return Err(ApiError::InvalidArgument("a depth or right image goes with an image, not a descriptor".into()))
         }
         Some(pb::add_frame_request::Content::Descriptor(d)) => Content::Descriptor(d.values),
         None => return Err(ApiError::InvalidArgument("a frame needs an image or a descriptor".into())),
@@ -270,10 +291,10 @@ impl pb::loopd_server::Loopd for GrpcApi {
         let r = req.into_inner();
         let target = match r.content {
             Some(pb::query_request::Content::Image(b)) => {
-                QueryTarget::Content(Content::Image { image: b, depth: depth(r.depth) })
+                QueryTarget::Content(Content::Image { image: b, depth: depth(r.depth), right: depth(r.right) })
             }
-            Some(_) if !r.depth.is_empty() => {
-                return Err(ApiError::InvalidArgument("a depth image goes with an image".into()).into())
+            Some(_) if !r.depth.is_empty() || !r.right.is_empty() => {
+                return Err(ApiError::InvalidArgument("a depth or right image goes with an image".into()).into())
             }
             Some(pb::query_request::Content::Descriptor(d)) => QueryTarget::Content(Content::Descriptor(d.values)),
             Some(pb::query_request::Content::FrameId(id)) => QueryTarget::Frame(id),

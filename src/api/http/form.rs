@@ -40,6 +40,9 @@ pub struct FrameFields {
     /// The `depth` part of a multipart form: the image's registered depth image.
     #[serde(skip)]
     pub depth: Option<Bytes>,
+    /// The `right` part of a multipart form: the right image of a stereo pair.
+    #[serde(skip)]
+    pub right: Option<Bytes>,
 }
 
 /// Text form fields (multipart or query string) into the same JSON shape as a JSON body.
@@ -47,6 +50,7 @@ fn fields_from_text(
     map: HashMap<String, String>,
     image: Option<Bytes>,
     depth: Option<Bytes>,
+    right: Option<Bytes>,
 ) -> Result<FrameFields, ApiError> {
     let mut obj = serde_json::Map::new();
     for (k, v) in map {
@@ -62,6 +66,7 @@ fn fields_from_text(
         serde_json::from_value(serde_json::Value::Object(obj)).map_err(|e| ApiError::InvalidArgument(e.to_string()))?;
     f.image = image;
     f.depth = depth;
+    f.right = right;
     Ok(f)
 }
 
@@ -78,7 +83,7 @@ pub async fn read_fields(req: Request) -> Result<FrameFields, ApiError> {
         let Json(f) = Json::<FrameFields>::from_request(req, &()).await.map_err(json_error)?;
         return Ok(f);
     }
-    let mut form = read_form(req, &["image", "depth"]).await?;
+    let mut form = read_form(req, &["image", "depth", "right"]).await?;
     let mut part = |name: &str| {
         let mut files: Vec<Bytes> = Vec::new();
         form.files.retain(|f| {
@@ -93,9 +98,9 @@ pub async fn read_fields(req: Request) -> Result<FrameFields, ApiError> {
             _ => Err(ApiError::InvalidArgument(format!("one '{name}' part per frame"))),
         }
     };
-    let (image, depth) = (part("image")?, part("depth")?);
+    let (image, depth, right) = (part("image")?, part("depth")?, part("right")?);
     let image = image.or(form.body.filter(|b| !b.is_empty()));
-    fields_from_text(form.fields, image, depth)
+    fields_from_text(form.fields, image, depth, right)
 }
 
 fn content_type(req: &Request) -> String {
@@ -150,12 +155,12 @@ fn multipart_error(e: axum::extract::multipart::MultipartError) -> ApiError {
 }
 
 pub fn content(f: &mut FrameFields) -> Result<Content, ApiError> {
-    let depth = f.depth.take();
+    let (depth, right) = (f.depth.take(), f.right.take());
     match (f.image.take(), f.descriptor.take()) {
         (Some(_), Some(_)) => Err(ApiError::InvalidArgument("send an image or a descriptor, not both".into())),
-        (Some(image), None) => Ok(Content::Image { image, depth }),
-        (None, _) if depth.is_some() => {
-            Err(ApiError::InvalidArgument("a 'depth' part goes with an 'image' part".into()))
+        (Some(image), None) => Ok(Content::Image { image, depth, right }),
+        (None, _) if depth.is_some() || right.is_some() => {
+            Err(ApiError::InvalidArgument("a 'depth' or 'right' part goes with an 'image' part".into()))
         }
         (None, Some(d)) => Ok(Content::Descriptor(d)),
         (None, None) => Err(ApiError::InvalidArgument("an image or a descriptor is required".into())),

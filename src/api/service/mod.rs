@@ -14,7 +14,7 @@ use crate::store::record::{Camera, FrameHeader};
 use crate::store::{NewFrame, NewSession, Session, SessionInfo, Store, MAX_CLIENT_FRAME_ID};
 use crate::verify::confidence::Calibrator;
 use crate::verify::features::Features;
-use crate::verify::geometric::{Intrinsics, VerifyParams};
+use crate::verify::geometric::VerifyParams;
 use crate::verify::pool::{Verifier, VerifyConfig};
 use crate::verify::sequence::{self, Place};
 pub use crate::verify::LoopMatch;
@@ -59,11 +59,12 @@ struct Prepared {
 /// A frame's picture: image bytes to embed, or a descriptor computed elsewhere.
 pub enum Content {
     /// An encoded image, and the depth image registered to it if the frame has one (16-bit in
-    /// the session camera's `depth_scale` units, or float metres): loops verified with it get
-    /// metric poses.
+    /// the session camera's `depth_scale` units, or float metres), or the right image of a stereo
+    /// pair (the session camera's `stereo`): loops verified with it get metric poses.
     Image {
         image: Bytes,
         depth: Option<Bytes>,
+        right: Option<Bytes>,
     },
     Descriptor(Vec<f32>),
     /// An image of this server's model embedded, and its features extracted, ahead (sequence
@@ -296,10 +297,6 @@ pub struct CreateSession {
     pub index: IndexKind,
 }
 
-fn intrinsics(c: &Camera) -> Intrinsics {
-    Intrinsics { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, dist: c.distortion }
-}
-
 impl LoopService {
     pub fn new(engine: Engine, store: Arc<Store>, verify: VerifyConfig, calibrator: Option<Calibrator>) -> Self {
         let service = Self {
@@ -332,9 +329,13 @@ impl LoopService {
         let defaults = req.default_query.apply(&LoopQuery::default());
         defaults.validate().map_err(ApiError::from)?;
         if let Some(c) = &req.camera {
-            intrinsics(c).validate().map_err(|e| ApiError::InvalidArgument(format!("camera: {e}")))?;
+            c.intrinsics().validate().map_err(|e| ApiError::InvalidArgument(format!("camera: {e}")))?;
             if let Some(s) = c.depth_scale.filter(|s| !(s.is_finite() && *s > 0.0)) {
                 return Err(ApiError::InvalidArgument(format!("camera: depth_scale {s} must be a finite number > 0")));
+            }
+            // The pair checked once here (for a nominal image size), so a frame never meets a bad rig.
+            if let Some(Err(e)) = c.stereo_rig(640, 480) {
+                return Err(ApiError::InvalidArgument(format!("camera: {e}")));
             }
         }
         let descriptor_id = self.engine.info().descriptor_id.clone();
@@ -412,9 +413,17 @@ impl LoopService {
                 };
                 return Ok(Prepared { descriptor, features, thumbnail: None });
             }
-            Content::Image { image, depth } => (image, depth),
+            Content::Image { image, depth, right } => (image, depth, right),
         };
-        let (bytes, depth) = bytes;
+        let (bytes, depth, right) = bytes;
+        if right.is_some() && depth.is_some() {
+            return Err(ApiError::InvalidArgument("send a depth image or a right image, not both".into()));
+        }
+        if right.is_some() && s.meta.camera.as_ref().is_none_or(|c| c.stereo.is_none()) {
+            return Err(ApiError::InvalidArgument(
+                "a right image needs a session camera with stereo (baseline, or the right camera's pose)".into(),
+            ));
+        }
         self.check_space(s)?;
         let scale = s.meta.camera.as_ref().map_or(crate::verify::depth::DEFAULT_DEPTH_SCALE, |c| c.depth_scale());
         // The engine's queue first: a refused image (overload) is neither decoded nor searched
@@ -427,12 +436,20 @@ impl LoopService {
             _ => None,
         };
         let embed = self.engine.embed_admitted(admission, bytes.clone(), Variant::FULL);
+        let camera = s.meta.camera;
         let extract = async {
             match features {
-                true => match self.verifier.extract(bytes.clone(), limits, depth.is_some()).await {
-                    Ok(mut f) => match &depth {
-                        Some(d) => d.attach(&mut f).map(|_| Ok(f)).map_err(bad_depth),
-                        None => Ok(Ok(f)),
+                true => match self.verifier.extract(bytes.clone(), limits, depth.is_some() || right.is_some()).await {
+                    Ok(mut f) => match (&depth, &right, &camera) {
+                        (Some(d), _, _) => d.attach(&mut f).map(|_| Ok(f)).map_err(bad_depth),
+                        (None, Some(r), Some(c)) => {
+                            let rf = self.verifier.extract(r.clone(), limits, false).await.map_err(bad_depth)?;
+                            match c.stereo_rig(f.width, f.height).and_then(Result::ok) {
+                                Some(rig) => rig.attach(&mut f, &rf).map(|_| Ok(f)).map_err(bad_depth),
+                                None => Ok(Ok(f)),
+                            }
+                        }
+                        _ => Ok(Ok(f)),
                     },
                     Err(e) => Ok(Err(no_features(e))),
                 },

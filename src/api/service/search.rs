@@ -107,7 +107,7 @@ impl LoopService {
             let features = stored.and_then(|b| stored_features(&s.meta.id, m.frame_id, &b));
             candidates.push((m, features));
         }
-        let camera = s.meta.camera.as_ref().map(intrinsics);
+        let camera = s.meta.camera.as_ref().map(Camera::intrinsics);
         let params = VerifyParams { min_inliers: v.min_inliers, ..Default::default() };
         let checks = Checks { checked, camera, params, seq, places, calibrator };
         let mut out = self.verifier.check(query, candidates, checks).await?;

@@ -117,6 +117,7 @@ async fn query(
         options: Some(pb::QueryOptions { verify: Some(false), ..*o }),
         timestamp: at,
         depth: Default::default(),
+        right: Default::default(),
     };
     c.query(req).await.unwrap().into_inner().matches
 }

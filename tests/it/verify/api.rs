@@ -132,6 +132,7 @@ async fn euroc_loops_carry_the_relative_pose_over_grpc() {
         cy: 248.375,
         distortion: vec![-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0],
         depth_scale: None,
+        stereo: None,
     };
     grpc.create_session(pb::CreateSessionRequest { id: "euroc".into(), camera: Some(camera), ..Default::default() })
         .await
@@ -179,13 +180,15 @@ async fn bad_verification_input_gets_clear_answers() {
         assert_eq!(r.status(), 400, "{camera}");
     }
     let mut grpc = LoopdClient::connect(format!("http://{}", server.grpc_addr)).await.unwrap();
-    let bad = pb::Camera { fx: f64::NAN, fy: 1.0, cx: 0.0, cy: 0.0, distortion: vec![], depth_scale: None };
+    let bad =
+        pb::Camera { fx: f64::NAN, fy: 1.0, cx: 0.0, cy: 0.0, distortion: vec![], depth_scale: None, stereo: None };
     let status = grpc
         .create_session(pb::CreateSessionRequest { id: "cam".into(), camera: Some(bad), ..Default::default() })
         .await
         .unwrap_err();
     assert_eq!(status.code(), tonic::Code::InvalidArgument);
-    let short = pb::Camera { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0, distortion: vec![0.1, 0.2], depth_scale: None };
+    let short =
+        pb::Camera { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0, distortion: vec![0.1, 0.2], depth_scale: None, stereo: None };
     let status = grpc
         .create_session(pb::CreateSessionRequest { id: "cam".into(), camera: Some(short), ..Default::default() })
         .await

@@ -336,3 +336,200 @@ mod server {
         server.shutdown().await.unwrap();
     }
 }
+
+/// EuRoC stereo (`euroc-lcd`): calibration from sensorLeft.yaml / sensorRight.yaml.
+mod euroc {
+    use super::*;
+    use loopd::verify::stereo::StereoRig;
+    use nalgebra::Matrix4;
+
+    struct Sensor {
+        t_bs: Matrix4<f64>,
+        k: Intrinsics,
+    }
+
+    fn numbers(text: &str, key: &str) -> Vec<f64> {
+        let at = text.find(key).unwrap();
+        let open = at + text[at..].find('[').unwrap();
+        let close = open + text[open..].find(']').unwrap();
+        text[open + 1..close].split(',').map(|v| v.trim().parse().unwrap()).collect()
+    }
+
+    fn sensor(side: &str) -> Sensor {
+        let text = std::fs::read_to_string(data(&format!("euroc-lcd/sensor{side}.yaml"))).unwrap();
+        let t = numbers(&text, "data:");
+        let i = numbers(&text, "intrinsics:");
+        let d = numbers(&text, "distortion_coefficients:");
+        Sensor {
+            t_bs: Matrix4::from_row_slice(&t),
+            k: Intrinsics { fx: i[0], fy: i[1], cx: i[2], cy: i[3], dist: Some([d[0], d[1], d[2], d[3], 0.0]) },
+        }
+    }
+
+    /// The right camera's pose in the left's (row-major rotation, translation in metres).
+    fn right_in_left() -> ([f64; 9], [f64; 3]) {
+        let (l, r) = (sensor("Left"), sensor("Right"));
+        // X_right = T_right_left X_left, T_right_left = T_BS_right^-1 T_BS_left.
+        let t = r.t_bs.try_inverse().unwrap() * l.t_bs;
+        let rot: Vec<f64> = (0..3).flat_map(|i| (0..3).map(move |j| (i, j))).map(|(i, j)| t[(i, j)]).collect();
+        (rot.try_into().unwrap(), [t[(0, 3)], t[(1, 3)], t[(2, 3)]])
+    }
+
+    pub fn rig() -> (StereoRig, Intrinsics) {
+        let (l, r) = (sensor("Left"), sensor("Right"));
+        let (rot, t) = right_in_left();
+        (StereoRig::new(l.k, r.k, rot, t, 752, 480).unwrap(), l.k)
+    }
+
+    /// EuRoC's stereo camera through the real server: frames 0 and 2 sent with their right
+    /// images over gRPC; frames 1 and 3 (left only) close on them with metric poses; a right
+    /// image without a stereo camera, or with a depth image, is refused.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn euroc_stereo_frames_give_metric_loops_through_the_server() {
+        use loopd::api::server::{RunningServer, ServerConfig};
+        use loopd::engine::EngineConfig;
+        use loopd::pb;
+        use loopd::pb::loopd_client::LoopdClient;
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = ServerConfig {
+            engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+            ..ServerConfig::on_loopback(dir.path().to_path_buf())
+        };
+        let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
+        let mut grpc = LoopdClient::connect(format!("http://{}", server.grpc_addr)).await.unwrap();
+        let (l, r) = (sensor("Left"), sensor("Right"));
+        let (rot, t) = right_in_left();
+        let d = |k: &Intrinsics| k.dist.unwrap().to_vec();
+        let camera = |stereo: Option<pb::StereoCamera>| pb::Camera {
+            fx: l.k.fx,
+            fy: l.k.fy,
+            cx: l.k.cx,
+            cy: l.k.cy,
+            distortion: d(&l.k),
+            depth_scale: None,
+            stereo,
+        };
+        let stereo = pb::StereoCamera {
+            baseline: None,
+            rotation: rot.to_vec(),
+            translation: t.to_vec(),
+            right_intrinsics: vec![r.k.fx, r.k.fy, r.k.cx, r.k.cy],
+            right_distortion: d(&r.k),
+        };
+        for (id, cam) in [("euroc-stereo", Some(stereo.clone())), ("euroc-mono", None)] {
+            let req = pb::CreateSessionRequest { id: id.into(), camera: Some(camera(cam)), ..Default::default() };
+            grpc.create_session(req).await.unwrap();
+        }
+        let bad = pb::StereoCamera { rotation: vec![1.0; 9], ..stereo.clone() };
+        let req = pb::CreateSessionRequest { id: "bad".into(), camera: Some(camera(Some(bad))), ..Default::default() };
+        assert_eq!(grpc.create_session(req).await.unwrap_err().code(), tonic::Code::InvalidArgument);
+        let read = |side: &str, i: usize| std::fs::read(data(&format!("euroc-lcd/{side}_img_{i}.png"))).unwrap();
+        let frame = |session: &str, i: usize, right: bool, depth: bool| pb::AddFrameRequest {
+            session_id: session.into(),
+            robot_id: "mav".into(),
+            timestamp: Some(i as f64),
+            content: Some(pb::add_frame_request::Content::Image(read("left", i).into())),
+            right: if right { read("right", i).into() } else { Default::default() },
+            depth: if depth { read("right", i).into() } else { Default::default() },
+            ..Default::default()
+        };
+        let refused = grpc.add_frame(frame("euroc-mono", 0, true, false)).await.unwrap_err();
+        assert_eq!(refused.code(), tonic::Code::InvalidArgument);
+        assert!(refused.message().contains("stereo"), "{refused:?}");
+        let both = grpc.add_frame(frame("euroc-stereo", 0, true, true)).await.unwrap_err();
+        assert_eq!(both.code(), tonic::Code::InvalidArgument, "{both:?}");
+        let mut ids = std::collections::HashMap::new();
+        for i in [0, 2] {
+            ids.insert(i, grpc.add_frame(frame("euroc-stereo", i, true, false)).await.unwrap().into_inner().frame_id);
+        }
+        for (qi, ci) in [(1, 0), (3, 2)] {
+            let q = pb::QueryRequest {
+                session_id: "euroc-stereo".into(),
+                robot_id: "other".into(),
+                content: Some(pb::query_request::Content::Image(read("left", qi).into())),
+                options: Some(pb::QueryOptions { k: Some(1), ..Default::default() }),
+                ..Default::default()
+            };
+            let m = grpc.query(q).await.unwrap().into_inner().matches;
+            assert_eq!(m[0].frame_id, ids[&ci]);
+            let v = m[0].verification.clone().unwrap();
+            assert!(v.verified && v.metric && v.covariance.len() == 36, "{qi}->{ci}: {v:?}");
+            let p = v.relative_pose.unwrap();
+            let measured = Isometry3::from_parts(
+                Translation3::new(p.tx, p.ty, p.tz),
+                UnitQuaternion::from_quaternion(Quaternion::new(p.qw, p.qx, p.qy, p.qz)),
+            );
+            let truth = cam_pose(qi).inverse() * cam_pose(ci);
+            let err = (measured.translation.vector - truth.translation.vector).norm();
+            let rot = (measured.inverse() * truth).rotation.angle().to_degrees();
+            eprintln!("server EuRoC {qi}->{ci}: {:.2} cm {rot:.2} deg", err * 100.0);
+            assert!(err < 0.10 && rot < 2.5, "{qi}->{ci}: {err:.3} m {rot:.2} deg off");
+        }
+        server.shutdown().await.unwrap();
+    }
+
+    /// World-T-body of frame i (GROUND_TRUTH.txt) times the left camera's T_BS.
+    pub fn cam_pose(i: usize) -> Isometry3<f64> {
+        let text = std::fs::read_to_string(data("euroc-lcd/GROUND_TRUTH.txt")).unwrap();
+        let line = text.lines().find(|l| l.trim_start().starts_with(&format!("img{i} "))).unwrap();
+        let nums = |tag: &str| -> Vec<f64> {
+            let at = line.find(tag).unwrap() + tag.len();
+            let close = at + line[at..].find(')').unwrap();
+            line[at..close].split(',').map(|v| v.trim().parse().unwrap()).collect()
+        };
+        let (q, t) = (nums("q=("), nums("t=("));
+        let body = Isometry3::from_parts(
+            Translation3::new(t[0], t[1], t[2]),
+            UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3])),
+        );
+        let s = sensor("Left").t_bs;
+        let rot = nalgebra::Rotation3::from_matrix_unchecked(s.fixed_view::<3, 3>(0, 0).into_owned());
+        let bs = Isometry3::from_parts(
+            Translation3::new(s[(0, 3)], s[(1, 3)], s[(2, 3)]),
+            UnitQuaternion::from_rotation_matrix(&rot),
+        );
+        body * bs
+    }
+
+    pub fn frame(i: usize, right: bool) -> Features {
+        let limits = ImageLimits::default();
+        let p = FeatureParams::default();
+        let read = |side: &str| std::fs::read(data(&format!("euroc-lcd/{side}_img_{i}.png"))).unwrap();
+        let mut f = from_image_bytes(&read("left"), &limits, &p).unwrap();
+        if right {
+            let r = from_image_bytes(&read("right"), &limits, &p).unwrap();
+            rig().0.attach(&mut f, &r).unwrap();
+        }
+        f
+    }
+
+    #[test]
+    fn euroc_stereo_loops_get_metric_poses() {
+        let (rig, k) = rig();
+        assert!((rig.baseline() - 0.110).abs() < 0.005, "EuRoC's baseline is 11 cm: {}", rig.baseline());
+        let p = VerifyParams::default();
+        for (qi, ci) in [(1, 0), (3, 2)] {
+            let c = frame(ci, true);
+            let with_depth = c.depths.iter().filter(|&&z| z > 0.0).count();
+            // Rows matched: a good share of the corners, at room distances.
+            assert!(with_depth > c.len() / 5, "{with_depth} of {} keypoints got a depth", c.len());
+            assert!(c.depths.iter().filter(|&&z| z > 0.0).all(|&z| z < 60.0));
+            let v = verify(&frame(qi, false), &c, Some(&k), &p);
+            assert!(v.verified && v.metric, "{qi}->{ci}: {v:?}");
+            let truth = cam_pose(qi).inverse() * cam_pose(ci);
+            let (t, r, d2) = pose_error(&v, &truth);
+            eprintln!(
+                "EuRoC {qi}->{ci}: |t| {:.3} m, error {:.2} cm {r:.2} deg, {} PnP inliers of {}, {with_depth} stereo depths, d2 {d2:.1}",
+                truth.translation.vector.norm(),
+                t * 100.0,
+                v.pose_inliers,
+                v.inliers
+            );
+            assert!(t < 0.10, "{qi}->{ci}: {t:.3} m off");
+            assert!(r < 2.5, "{qi}->{ci}: {r:.2} deg off");
+        }
+        // A rotation that is not one, and no baseline: refused.
+        assert!(StereoRig::new(k, k, [1.0; 9], [0.1, 0.0, 0.0], 752, 480).is_err());
+        assert!(StereoRig::rectified(k, 0.0, 752, 480).is_err());
+    }
+}

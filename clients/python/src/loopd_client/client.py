@@ -86,10 +86,12 @@ class Client:
     def create_session(self, id: str = "", name: str = "", *, camera: Optional[Sequence[float]] = None,
                        storage: int = pb.STORAGE_UNSPECIFIED, default_query: Optional[pb.QueryOptions] = None,
                        thumbnails: bool = False, index: str = "auto", exist_ok: bool = False,
-                       depth_scale: Optional[float] = None) -> pb.Session:
+                       depth_scale: Optional[float] = None, stereo: Optional[dict] = None) -> pb.Session:
         """A new session; `camera` is fx, fy, cx, cy[, k1, k2, p1, p2, k3] (verified loops then
         carry a relative pose); `depth_scale`: units per metre of its frames' 16-bit depth images
-        (default 1000); `thumbnails` keeps a small JPEG of each frame (the loop
+        (default 1000); `stereo`: the right camera of a stereo pair, {"baseline": m} for a rectified
+        pair or {"rotation": 9 values, "translation": 3, "right_intrinsics": 4, "right_distortion":
+        5} (X_right = R X_left + t); `thumbnails` keeps a small JPEG of each frame (the loop
         inspector shows them); `index` is "auto" (exact until the session is large, then
         approximate), "exact" or "approximate". With `exist_ok` an existing session of that id
         is returned."""
@@ -103,6 +105,8 @@ class Client:
             request.camera.CopyFrom(pb.Camera(fx=v[0], fy=v[1], cx=v[2], cy=v[3], distortion=v[4:]))
             if depth_scale is not None:
                 request.camera.depth_scale = float(depth_scale)
+            if stereo is not None:
+                request.camera.stereo.CopyFrom(pb.StereoCamera(**stereo))
         try:
             return self._unary(self._stub.CreateSession, request)
         except grpc.RpcError as e:
@@ -155,6 +159,8 @@ class Client:
             request.image = frame.image
             if frame.depth is not None:
                 request.depth = frame.depth
+            if frame.right is not None:
+                request.right = frame.right
         elif frame.descriptor is not None:
             request.descriptor.values.extend(frame.descriptor)
         else:
@@ -193,7 +199,7 @@ class Client:
     def query(self, session: str, robot: str, *, image: Optional[bytes] = None,
               descriptor: Optional[Sequence[float]] = None, frame_id: Optional[int] = None,
               options: Optional[pb.QueryOptions] = None, timestamp: Optional[float] = None,
-              depth: Optional[bytes] = None) -> List[pb.Match]:
+              depth: Optional[bytes] = None, right: Optional[bytes] = None) -> List[pb.Match]:
         """Loop candidates for an image (with its depth image, if given), a descriptor or a
         stored frame (nothing is stored)."""
         request = pb.QueryRequest(session_id=session, robot_id=robot, options=options)
@@ -201,6 +207,8 @@ class Client:
             request.image = image
             if depth is not None:
                 request.depth = depth
+            if right is not None:
+                request.right = right
         elif descriptor is not None:
             request.descriptor.values.extend(descriptor)
         elif frame_id is not None:

@@ -34,6 +34,8 @@ class Frame:
     # A depth image registered to `image` (16-bit PNG/PGM/TIFF in the session camera's
     # depth_scale units per metre, or float TIFF in metres): its verified loops get metric poses.
     depth: Optional[bytes] = None
+    # The right image of a stereo pair (a session camera with `stereo`): the same metric poses.
+    right: Optional[bytes] = None
 
 
 @dataclass
