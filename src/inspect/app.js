@@ -256,9 +256,21 @@
     add('geometry', l.checked ? verifiedText(l) + ((l.inlier_matches || []).length ? ' (green: inlier matches)' : '')
       : 'not checked');
     if (l.relative_pose) {
-      const p = l.relative_pose;
-      add('relative pose', 't ' + [p.tx, p.ty, p.tz].map((v) => v.toFixed(3)).join(' ') +
-        ' · q ' + [p.qx, p.qy, p.qz, p.qw].map((v) => v.toFixed(3)).join(' '));
+      const p = l.relative_pose, t = [p.tx, p.ty, p.tz];
+      const q = ' · q ' + [p.qx, p.qy, p.qz, p.qw].map((v) => v.toFixed(3)).join(' ');
+      if (l.metric) {
+        const norm = Math.hypot(p.tx, p.ty, p.tz);
+        add('relative pose', 't ' + t.map((v) => v.toFixed(3)).join(' ') + ' m (' + norm.toFixed(3) + ' m)' + q);
+        const c = l.covariance || [];
+        if (c.length === 36) {
+          // Standard deviations: the covariance's diagonal (x y z in m², rotation vector in rad²).
+          const sd = (i) => Math.sqrt(Math.max(0, c[i * 7]));
+          add('σ', 't ' + [0, 1, 2].map((i) => (100 * sd(i)).toFixed(2)).join(' ') + ' cm · rotation ' +
+            [3, 4, 5].map((i) => (sd(i) * 180 / Math.PI).toFixed(2)).join(' ') + '°');
+        }
+      } else {
+        add('relative pose', 'direction ' + t.map((v) => v.toFixed(3)).join(' ') + ' (monocular: scale unknown)' + q);
+      }
     }
     add('found', new Date(l.found * 1000).toISOString());
     add('verdict', l.verdict ? verdictText(l) + ' at ' + new Date(l.verdict.at * 1000).toISOString() +

@@ -236,3 +236,32 @@ def test_a_loop_rejected_on_the_page_leaves_the_graph(server, key, browser, tmp_
     assert sum(",accepted," in line for line in loops_csv) == len(accepted) - 1
     assert not any(line.startswith(f"EDGE_SE3:QUAT {q} {m} ") for line in graph), "gone from graph.g2o"
     assert sum(line.startswith("EDGE_SE3:QUAT") for line in graph) == len(true) - 1 + len(accepted) - 1
+
+
+def test_a_metric_loop_shows_its_transform_in_metres_and_its_sigma(server, key, browser):
+    """tum-desk frames sent with their depth: the page gives a metric loop's translation in metres
+    and the standard deviations of its covariance; a monocular session's loop says its scale is
+    unknown."""
+    desk = DATA / "rgbd-slambook2/tum-desk"
+    with Client(server.grpc, key=key, ca=server.ca) as c:
+        for name, depth in (("rgbd-page", True), ("mono-page", False)):
+            c.create_session(name, camera=[518.0, 519.0, 325.5, 253.5])
+            for i in range(1, 6):
+                frame = Frame(image=(desk / f"color/{i}.png").read_bytes(), timestamp=float(i), frame_id=i,
+                              depth=(desk / f"depth/{i}.pgm").read_bytes() if depth else None)
+                c.add_and_query(name, "cam", frame, query_options(k=1, exclude_last_frames=0))
+        metric = [l for l in c.loops("rgbd-page") if l.metric]
+        mono = [l for l in c.loops("mono-page") if l.verified and l.HasField("relative_pose")]
+    assert metric and mono, (metric, mono)
+    facts = lambda: browser.find_element(By.ID, "facts").text  # noqa: E731
+    open_inspector(browser, server, key, "rgbd-page")
+    show_all(browser)
+    select(browser, metric[0].query_frame, metric[0].match_frame)
+    text = facts()
+    t = metric[0].relative_pose
+    assert f"{(t.tx ** 2 + t.ty ** 2 + t.tz ** 2) ** 0.5:.3f} m" in text, text
+    assert "σ" in text and " cm · rotation " in text, text
+    open_inspector(browser, server, key, "mono-page")
+    show_all(browser)
+    select(browser, mono[0].query_frame, mono[0].match_frame)
+    assert "scale unknown" in facts(), facts()
