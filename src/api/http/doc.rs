@@ -83,6 +83,12 @@ pub struct Binary(pub Vec<u8>);
 #[allow(dead_code)] // a document shape: the form is read field by field (super::form)
 pub struct FrameForm {
     image: Option<Binary>,
+    /// The image's registered depth image: 16-bit PNG/PGM/TIFF in the session camera's
+    /// depth_scale units per metre (default 1000), or float TIFF in metres. Loops verified with
+    /// it get metric poses.
+    depth: Option<Binary>,
+    /// The right image of a stereo pair (a session camera with stereo); not with depth.
+    right: Option<Binary>,
     robot_id: Option<String>,
     /// A number.
     timestamp: Option<String>,
