@@ -97,6 +97,18 @@ pub struct EvalArgs {
     /// ground truth here, one JSON line each: the input of `loopd calibrate` (training sets only).
     #[arg(long)]
     pub samples_out: Option<PathBuf>,
+    /// Depth images registered to the frames (the file with a frame's name stem, e.g.
+    /// depth/3.pgm for color/3.png; 16-bit in --depth-scale units per metre, or float TIFF in
+    /// metres): verified loops get metric poses, scored against --poses.
+    #[arg(long)]
+    pub depth: Option<PathBuf>,
+    /// Units per metre of 16-bit depth images.
+    #[arg(long, default_value_t = crate::verify::depth::DEFAULT_DEPTH_SCALE)]
+    pub depth_scale: f64,
+    /// Ground-truth camera poses, one line per frame in natural name order, "x y z qx qy qz qw"
+    /// (T_world_camera; '#' lines skipped): each metric loop's pose error (one sequence only).
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -170,6 +182,8 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         samples_out: a.samples_out.as_deref(),
         index: IndexKind::parse(&a.index).map_err(anyhow::Error::msg)?,
         features: FeatureParams { max_features: a.max_features, descriptor_bits: a.feature_bits, ..Default::default() },
+        depth: a.depth.as_deref().map(|d| (d, a.depth_scale)),
+        poses: a.poses.as_deref(),
     };
     spec.features.validate()?;
     let variant = a.variant.variant();

@@ -181,6 +181,62 @@ pub struct EvalSpec<'a> {
     pub index: IndexKind,
     /// Local features as the server extracts them (`--max-features`, `--feature-bits`).
     pub features: FeatureParams,
+    /// Depth images of the frames (folder, units per metre): metric loop poses.
+    pub depth: Option<(&'a Path, f64)>,
+    /// Ground-truth camera poses (T_world_camera per frame): each metric loop's pose error.
+    pub poses: Option<&'a Path>,
+}
+
+/// A metric loop's relative pose against the ground truth's.
+#[derive(Clone, Debug, Serialize)]
+pub struct PoseError {
+    pub query: usize,
+    #[serde(rename = "match")]
+    pub matched: usize,
+    /// Distance between the frames, by the ground truth (metres).
+    pub distance_m: f64,
+    pub translation_m: f64,
+    pub rotation_deg: f64,
+}
+
+/// Camera poses, one "x y z qx qy qz qw" line per frame.
+fn load_poses(path: &Path) -> Result<Vec<nalgebra::Isometry3<f64>>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut out = Vec::new();
+    for (n, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#')) {
+        let v: Vec<f64> = line
+            .split_whitespace()
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("{}:{}: not numbers", path.display(), n + 1))?;
+        let [x, y, z, qx, qy, qz, qw] = v[..] else {
+            bail!("{}:{}: {} values; x y z qx qy qz qw expected", path.display(), n + 1, v.len())
+        };
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(qw, qx, qy, qz));
+        out.push(nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(x, y, z), q));
+    }
+    Ok(out)
+}
+
+/// Gives each frame's features the depth image with the frame's name stem in `dir`, if any.
+fn attach_depths(files: &[PathBuf], features: &mut [Result<Features, String>], dir: &Path, scale: f64) -> Result<()> {
+    let mut by_stem = std::collections::HashMap::new();
+    for e in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+        let p = e?.path();
+        if let Some(stem) = p.file_stem().and_then(|s| s.to_str()) {
+            by_stem.insert(stem.to_string(), p.clone());
+        }
+    }
+    let limits = ImageLimits::default();
+    for (file, f) in files.iter().zip(features.iter_mut()) {
+        let (Ok(f), Some(stem)) = (f, file.file_stem().and_then(|s| s.to_str())) else { continue };
+        let Some(path) = by_stem.get(stem) else { continue };
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let depth = crate::verify::depth::DepthImage::decode(&bytes, scale, &limits)
+            .with_context(|| format!("{}", path.display()))?;
+        depth.attach(f).with_context(|| format!("{}", path.display()))?;
+    }
+    Ok(())
 }
 
 #[derive(Serialize)]
@@ -215,6 +271,9 @@ pub struct EvalOutput {
     /// The same protocol swept over the confidence of each query's first candidate.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub confidence: Option<ConfidenceReport>,
+    /// With --poses: each query's first candidate with a metric pose, against the ground truth.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub pose_errors: Vec<PoseError>,
 }
 
 /// Runs one evaluation with an already started engine.
@@ -261,12 +320,22 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         }
     };
     let features = |files: &[PathBuf], label: &str| -> Result<Vec<Result<Features, String>>> {
-        if v.geometric {
-            extract_all(files, label, &spec.features)
-        } else {
-            Ok(Vec::new())
+        if !v.geometric {
+            return Ok(Vec::new());
         }
+        let mut all = extract_all(files, label, &spec.features)?;
+        if let Some((dir, scale)) = spec.depth {
+            attach_depths(files, &mut all, dir, scale)?;
+        }
+        Ok(all)
     };
+    // Ground-truth poses score metric loops of one sequence (query i is frame i).
+    let poses = match (spec.poses, &queries) {
+        (Some(p), None) => Some(load_poses(p)?),
+        (Some(_), Some(_)) => bail!("--poses scores loops within one sequence, not with --query-sequence"),
+        (None, _) => None,
+    };
+    let mut pose_errors = Vec::new();
     let ref_features = features(&refs, "reference features")?;
     let query_features = match &queries {
         Some(q) => Some(features(q, "query features")?),
@@ -346,6 +415,24 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
             samples.push(Sample { evidence: c.evidence, truth, best: rank == 0 });
         }
         let first = ranked.first();
+        let metric = first.and_then(|c| c.verification.as_ref().filter(|v| v.verified && v.metric).map(|v| (c, v)));
+        if let (Some(poses), Some((c, v))) = (&poses, metric) {
+            let m = c.m.frame_id as usize;
+            if let (Some(tq), Some(tm), Some(p)) = (poses.get(i), poses.get(m), v.relative_pose.as_ref()) {
+                let truth = tq.inverse() * tm;
+                let measured = nalgebra::Isometry3::from_parts(
+                    nalgebra::Translation3::new(p.tx, p.ty, p.tz),
+                    nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(p.qw, p.qx, p.qy, p.qz)),
+                );
+                pose_errors.push(PoseError {
+                    query: i,
+                    matched: m,
+                    distance_m: truth.translation.vector.norm(),
+                    translation_m: (truth.translation.vector - measured.translation.vector).norm(),
+                    rotation_deg: (measured.inverse() * truth).rotation.angle().to_degrees(),
+                });
+            }
+        }
         results.push(QueryResult { query: i, best: first.map(|c| (c.m.frame_id as usize, verify::rank_score(c))) });
         let conf = first.and_then(|c| c.confidence.map(|p| (c.m.frame_id as usize, p)));
         confident.push(QueryResult { query: i, best: conf });
@@ -385,6 +472,7 @@ pub fn evaluate_sequences(engine: &Engine, spec: &EvalSpec, setup: &EmbedSetup) 
         report,
         calibrator: spec.calibrator.as_ref().map(|c| c.descriptor_id.clone()),
         confidence,
+        pose_errors,
     };
     if let Some(dir) = spec.out {
         std::fs::create_dir_all(dir)?;

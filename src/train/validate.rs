@@ -85,6 +85,8 @@ pub fn validate(spec: &TrainSpec, heads: Option<&Path>) -> Result<Vec<ValScore>>
                 samples_out: None,
                 index: Default::default(),
                 features: Default::default(),
+                depth: None,
+                poses: None,
             };
             let r =
                 evaluate_sequences(&engine, &es, &setup).with_context(|| format!("validation set {}", v.name))?.report;

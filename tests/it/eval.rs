@@ -98,3 +98,34 @@ fn eval_two_traversals_of_the_corridor() {
     let ap = r["average_precision"].as_f64().unwrap();
     assert!(ap > 0.0 && ap <= r1 + 1e-9, "{r}");
 }
+
+/// `loopd eval --depth --poses` on tum-desk: the verified loops get metric poses from the depth
+/// images and each is scored against the ground-truth camera poses.
+#[test]
+fn eval_scores_metric_loop_poses_against_ground_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let desk = data("rgbd-slambook2/tum-desk");
+    let (color, depth, poses) = (desk.join("color"), desk.join("depth"), desk.join("pose.txt"));
+    let gt = root().join("tests/gt/tum-desk.csv");
+    let cache = dir.path().join("cache");
+    let path = |p: &std::path::PathBuf| p.to_str().unwrap().to_string();
+    let mut args: Vec<String> =
+        ["--sequence", &path(&color), "--gt", &path(&gt), "--exclude", "0"].into_iter().map(String::from).collect();
+    args.extend(["--verify", "geometric", "--intrinsics", "518,519,325.5,253.5", "--cache-dir"].map(String::from));
+    args.push(path(&cache));
+    let without: Vec<&str> = args.iter().map(String::as_str).collect();
+    let r = eval_json(&without);
+    assert!(r.get("pose_errors").is_none(), "no depth, no poses: {r}");
+    args.extend(["--depth".to_string(), path(&depth), "--poses".to_string(), path(&poses)]);
+    let with: Vec<&str> = args.iter().map(String::as_str).collect();
+    let r = eval_json(&with);
+    let errors = r["pose_errors"].as_array().unwrap();
+    assert!(errors.len() >= 3, "{r}");
+    for e in errors {
+        eprintln!("{e}");
+        assert!(e["translation_m"].as_f64().unwrap() < 0.10, "{e}");
+        assert!(e["rotation_deg"].as_f64().unwrap() < 2.0, "{e}");
+        assert!(e["distance_m"].as_f64().unwrap() > 0.1, "{e}");
+    }
+    assert_eq!(r["recall_at_100_precision"], 1.0, "{r}");
+}
