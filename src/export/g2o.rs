@@ -81,10 +81,6 @@ impl EdgeCounts {
     }
 }
 
-pub fn graph(s: &Snapshot, noise: Noise) -> String {
-    graph_counted(s, noise).0
-}
-
 /// The graph and how many loops became edges.
 pub fn graph_counted(s: &Snapshot, noise: Noise) -> (String, EdgeCounts) {
     let mut out = String::new();

@@ -68,57 +68,48 @@ impl StereoRig {
         if baseline.is_nan() || baseline <= 1e-6 {
             return Err(VerifyError::Invalid("stereo translation is zero: no baseline".into()));
         }
-        Self::rectify(left, right, rotation, translation, width, height)
-            .map_err(|e| VerifyError::Invalid(format!("stereo rectification failed: {e}")))
-    }
-
-    fn rectify(
-        left: Intrinsics,
-        right: Intrinsics,
-        rotation: [f64; 9],
-        translation: [f64; 3],
-        width: u32,
-        height: u32,
-    ) -> opencv::Result<Self> {
-        let r = Mat::from_slice_2d(&[
-            [rotation[0], rotation[1], rotation[2]],
-            [rotation[3], rotation[4], rotation[5]],
-            [rotation[6], rotation[7], rotation[8]],
-        ])?;
-        let t = Mat::from_slice_2d(&[[translation[0]], [translation[1]], [translation[2]]])?;
-        let (mut r1, mut r2, mut p1, mut p2, mut q) =
-            (Mat::default(), Mat::default(), Mat::default(), Mat::default(), Mat::default());
-        let size = Size::new(width as i32, height as i32);
-        calib3d::stereo_rectify(
-            &camera_matrix(&left)?,
-            &dist(left.dist)?,
-            &camera_matrix(&right)?,
-            &dist(right.dist)?,
-            size,
-            &r,
-            &t,
-            &mut r1,
-            &mut r2,
-            &mut p1,
-            &mut p2,
-            &mut q,
-            calib3d::CALIB_ZERO_DISPARITY,
-            0.0,
-            size,
-            None,
-            None,
-        )?;
-        let mut r1m = Matrix3::zeros();
-        for i in 0..3 {
-            for j in 0..3 {
-                r1m[(i, j)] = *r1.at_2d::<f64>(i as i32, j as i32)?;
+        let rectify = || -> opencv::Result<Self> {
+            let r = Mat::from_slice_2d(&[
+                [rotation[0], rotation[1], rotation[2]],
+                [rotation[3], rotation[4], rotation[5]],
+                [rotation[6], rotation[7], rotation[8]],
+            ])?;
+            let t = Mat::from_slice_2d(&[[translation[0]], [translation[1]], [translation[2]]])?;
+            let (mut r1, mut r2, mut p1, mut p2, mut q) =
+                (Mat::default(), Mat::default(), Mat::default(), Mat::default(), Mat::default());
+            let size = Size::new(width as i32, height as i32);
+            calib3d::stereo_rectify(
+                &camera_matrix(&left)?,
+                &dist(left.dist)?,
+                &camera_matrix(&right)?,
+                &dist(right.dist)?,
+                size,
+                &r,
+                &t,
+                &mut r1,
+                &mut r2,
+                &mut p1,
+                &mut p2,
+                &mut q,
+                calib3d::CALIB_ZERO_DISPARITY,
+                0.0,
+                size,
+                None,
+                None,
+            )?;
+            let mut r1m = Matrix3::zeros();
+            for i in 0..3 {
+                for j in 0..3 {
+                    r1m[(i, j)] = *r1.at_2d::<f64>(i as i32, j as i32)?;
+                }
             }
-        }
-        let f = *p1.at_2d::<f64>(0, 0)?;
-        let (cx, cy) = (*p1.at_2d::<f64>(0, 2)?, *p1.at_2d::<f64>(1, 2)?);
-        // P2[0,3] = -f * baseline (the right camera sits at +baseline along the rectified x).
-        let baseline = (-*p2.at_2d::<f64>(0, 3)? / *p2.at_2d::<f64>(0, 0)?).abs();
-        Ok(Self { left, right, r1, p1, r2, p2, r1m, f, cx, cy, baseline })
+            let f = *p1.at_2d::<f64>(0, 0)?;
+            let (cx, cy) = (*p1.at_2d::<f64>(0, 2)?, *p1.at_2d::<f64>(1, 2)?);
+            // P2[0,3] = -f * baseline (the right camera sits at +baseline along the rectified x).
+            let baseline = (-*p2.at_2d::<f64>(0, 3)? / *p2.at_2d::<f64>(0, 0)?).abs();
+            Ok(Self { left, right, r1, p1, r2, p2, r1m, f, cx, cy, baseline })
+        };
+        rectify().map_err(|e| VerifyError::Invalid(format!("stereo rectification failed: {e}")))
     }
 
     /// A rectified pair with this baseline (metres): the right camera is the left one moved

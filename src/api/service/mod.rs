@@ -439,11 +439,20 @@ impl LoopService {
         let camera = s.meta.camera;
         let extract = async {
             match features {
-                true => match self.verifier.extract(bytes.clone(), limits, depth.is_some() || right.is_some()).await {
-                    Ok(mut f) => match (&depth, &right, &camera) {
+                // The right image's features beside the left's, on another verification worker.
+                true => match tokio::join!(
+                    self.verifier.extract(bytes.clone(), limits, depth.is_some() || right.is_some()),
+                    async {
+                        match &right {
+                            Some(r) => Some(self.verifier.extract(r.clone(), limits, false).await),
+                            None => None,
+                        }
+                    }
+                ) {
+                    (Ok(mut f), right) => match (&depth, right, &camera) {
                         (Some(d), _, _) => d.attach(&mut f).map(|_| Ok(f)).map_err(bad_depth),
-                        (None, Some(r), Some(c)) => {
-                            let rf = self.verifier.extract(r.clone(), limits, false).await.map_err(bad_depth)?;
+                        (None, Some(rf), Some(c)) => {
+                            let rf = rf.map_err(bad_depth)?;
                             match c.stereo_rig(f.width, f.height).and_then(Result::ok) {
                                 Some(rig) => rig.attach(&mut f, &rf).map(|_| Ok(f)).map_err(bad_depth),
                                 None => Ok(Ok(f)),
@@ -451,7 +460,7 @@ impl LoopService {
                         }
                         _ => Ok(Ok(f)),
                     },
-                    Err(e) => Ok(Err(no_features(e))),
+                    (Err(e), _) => Ok(Err(no_features(e))),
                 },
                 false => Ok(Err("feature extraction is off".to_string())),
             }
