@@ -28,7 +28,6 @@ use std::sync::atomic::{AtomicU64, Ordering::SeqCst};
 use std::sync::Arc;
 use tokio_postgres::error::SqlState;
 use tokio_postgres::types::ToSql;
-use tokio_postgres::NoTls;
 
 pub struct PgLog {
     db: Arc<Db>,
@@ -103,7 +102,10 @@ impl PgLog {
             config.keepalives_interval(std::time::Duration::from_secs(1));
             config.keepalives_retries(3);
         }
-        let manager = Manager::from_config(config, NoTls, ManagerConfig { recycling_method: RecyclingMethod::Fast });
+        // Each host of the URL in turn, each opening bounded as a whole (pg_connect.rs): a frozen
+        // primary must not hold up the hosts after it.
+        let hosts = super::pg_connect::PerHost::new(&config);
+        let manager = Manager::from_connect(config, hosts, ManagerConfig { recycling_method: RecyclingMethod::Fast });
         let pool = Pool::builder(manager)
             .max_size(max_connections.max(1))
             // Waiting for a free connection, opening one (each host of the URL in turn) and
@@ -120,6 +122,7 @@ impl PgLog {
             deadline,
             primary: Default::default(),
             epoch: AtomicU64::new(0),
+            changed_at: Default::default(),
             timeline: Default::default(),
             unreplicated: Default::default(),
         };
@@ -153,7 +156,9 @@ impl PgLog {
     /// for a synchronous standby (checked again on that connection: settings change live).
     pub async fn probe(&self) -> Result<(), StoreError> {
         let client = self.client().await?;
-        self.db.check(&client).await?;
+        tokio::time::timeout(self.db.deadline, self.db.check(&client))
+            .await
+            .unwrap_or_else(|_| Err(super::pg_db::late(self.db.deadline, "the readiness probe")))?;
         self.db.writable()
     }
 
@@ -200,21 +205,22 @@ impl PgLog {
     /// Every session as the log holds it now.
     pub async fn heads(&self) -> Result<Vec<Head>, StoreError> {
         let sql = "SELECT meta, tbl, version FROM loopd_sessions ORDER BY id";
-        let rows = self.client().await?.query(sql, &[]).await.map_err(pg_error)?;
+        let rows = self.db.query("listing sessions", sql, &[]).await?.map_err(pg_error)?;
         rows.iter().map(head).collect()
     }
 
     /// One session as the log holds it now (one round trip).
     pub async fn head(&self, session: &str) -> Result<Head, StoreError> {
         let sql = "SELECT meta, tbl, version FROM loopd_sessions WHERE id = $1";
-        let row = self.client().await?.query_opt(sql, &[&session]).await.map_err(pg_error)?;
+        let row = self.db.query_opt("reading a session", sql, &[&session]).await?;
         head(&row.ok_or_else(|| StoreError::SessionNotFound(session.into()))?)
     }
 
     /// The session's version: the `seq` of its last committed frame (0: none).
     pub async fn version(&self, session: &str) -> Result<i64, StoreError> {
-        let row = self.client().await?.query_opt("SELECT version FROM loopd_sessions WHERE id = $1", &[&session]).await;
-        row.map_err(pg_error)?.map(|r| r.get(0)).ok_or_else(|| StoreError::SessionNotFound(session.into()))
+        let sql = "SELECT version FROM loopd_sessions WHERE id = $1";
+        let row = self.db.query_opt("reading a session's version", sql, &[&session]).await?;
+        row.map(|r| r.get(0)).ok_or_else(|| StoreError::SessionNotFound(session.into()))
     }
 
     /// Drops a session and its frames, in one transaction.
@@ -262,13 +268,15 @@ impl PgLog {
     /// Every session's id and frame count (its version: one `seq` per frame, and frames are only
     /// ever deleted with their session).
     pub async fn frame_counts(&self) -> Result<Vec<(String, u64)>, StoreError> {
-        let rows = self.client().await?.query("SELECT id, version FROM loopd_sessions", &[]).await.map_err(pg_error)?;
+        let sql = "SELECT id, version FROM loopd_sessions";
+        let rows = self.db.query("counting frames", sql, &[]).await?.map_err(pg_error)?;
         Ok(rows.iter().map(|r| (r.get(0), r.get::<_, i64>(1).max(0) as u64)).collect())
     }
 
     /// Every tenant's record, by name.
     pub async fn tenants(&self) -> Result<Vec<(String, Vec<u8>)>, StoreError> {
-        let rows = self.client().await?.query("SELECT name, record FROM loopd_tenants", &[]).await.map_err(pg_error)?;
+        let sql = "SELECT name, record FROM loopd_tenants";
+        let rows = self.db.query("reading tenants", sql, &[]).await?.map_err(pg_error)?;
         rows.iter()
             .map(|r| {
                 let record: serde_json::Value = r.get(1);
@@ -376,7 +384,7 @@ impl PgLog {
     /// Every kept loop of the session whose table is `tbl`.
     pub async fn loops(&self, session: &str, tbl: i64) -> Result<Vec<LoopRecord>, StoreError> {
         let sql = format!("SELECT record FROM {} ORDER BY query_frame, match_frame", loops_table(tbl));
-        let rows = match self.client().await?.query(&sql, &[]).await {
+        let rows = match self.db.query("reading kept loops", &sql, &[]).await? {
             Err(e) if e.code() == Some(&SqlState::UNDEFINED_TABLE) => {
                 return Err(StoreError::SessionNotFound(session.into()))
             }
@@ -395,12 +403,11 @@ impl PgLog {
     /// As [`PgLog::frames`], from the session's table `tbl` (SessionNotFound once it is
     /// dropped), at most `limit` frames: a node loads a large session page by page.
     pub async fn tail(&self, session: &str, tbl: i64, after: i64, limit: i64) -> Result<Vec<LoggedFrame>, StoreError> {
-        let client = self.client().await?;
         let sql = format!(
             "SELECT seq, frame_id, record, features, thumb FROM {} WHERE seq > $1 ORDER BY seq LIMIT $2",
             frames_table(tbl)
         );
-        let rows = match client.query(&sql, &[&after, &limit]).await {
+        let rows = match self.db.query("reading frames", &sql, &[&after, &limit]).await? {
             Err(e) if e.code() == Some(&SqlState::UNDEFINED_TABLE) => {
                 return Err(StoreError::SessionNotFound(session.into()))
             }

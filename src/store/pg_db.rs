@@ -47,6 +47,10 @@ pub(super) struct Db {
     /// may be missing from this one (visible there before a standby had them), so nodes drop
     /// what they applied before the change (`epoch`).
     pub(super) epoch: AtomicU64,
+    /// When the last change of primary was seen: pooled connections opened before it lead to
+    /// the old primary (perhaps frozen: a statement there would wait for ever) and are closed
+    /// instead of being handed out.
+    pub(super) changed_at: parking_lot::Mutex<Option<std::time::Instant>>,
     /// Why writes are refused now: the primary does not wait for a synchronous standby.
     pub(super) unreplicated: parking_lot::Mutex<Option<Unreplicated>>,
     /// The newest timeline a primary answered with here. A primary on an older one was replaced
@@ -116,7 +120,15 @@ impl Db {
     /// A pooled connection; a new one first says which primary it reached (a change bumps the
     /// epoch) and whether its commits wait for a synchronous standby.
     pub(super) async fn client(&self) -> Result<Object, StoreError> {
-        let client = self.pool.get().await.map_err(|e| pool_error(e, self.deadline))?;
+        let client = loop {
+            let client = self.pool.get().await.map_err(|e| pool_error(e, self.deadline))?;
+            let changed = *self.changed_at.lock();
+            if changed.is_some_and(|at| Object::metrics(&client).created < at) {
+                let _ = Object::take(client);
+                continue;
+            }
+            break client;
+        };
         if Object::metrics(&client).recycle_count > 0 {
             return Ok(client);
         }
@@ -190,6 +202,10 @@ impl Db {
         let mut known = self.primary.lock();
         if known.as_ref().is_some_and(|p| *p != primary) {
             let epoch = self.epoch.fetch_add(1, SeqCst) + 1;
+            // Connections opened before now lead to the old primary: none is handed out again.
+            let now = std::time::Instant::now();
+            *self.changed_at.lock() = Some(now);
+            self.pool.retain(|_, m| m.created >= now);
             tracing::warn!(%primary, epoch, "the cluster database has another primary: cached sessions are reloaded");
         }
         *known = Some(primary);
@@ -218,6 +234,44 @@ impl Db {
         tokio::time::timeout(self.deadline, write)
             .await
             .unwrap_or_else(|_| Err(late(self.deadline, &format!("{what}, which may or may not have been committed"))))
+    }
+
+    /// A read (one statement) under the log's deadline: past it the read answers Unavailable and
+    /// its connection is closed, never pooled (a primary frozen mid-statement acknowledges at the
+    /// TCP level and never answers; neither keepalives nor the TCP user timeout end that wait).
+    /// The outer error: no connection or no answer in time; the inner one: the statement's own.
+    pub(super) async fn query(
+        &self,
+        what: &str,
+        sql: &str,
+        params: &[&(dyn tokio_postgres::types::ToSql + Sync)],
+    ) -> Result<Result<Vec<tokio_postgres::Row>, tokio_postgres::Error>, StoreError> {
+        let read = async {
+            let mut held = Held(Some(self.client().await?));
+            let rows = held.conn().query(sql, params).await;
+            // Answered (rows or the server's refusal): the connection is sound.
+            if rows.is_ok() || rows.as_ref().is_err_and(|e| e.as_db_error().is_some()) {
+                held.release();
+            }
+            Ok(rows)
+        };
+        tokio::time::timeout(self.deadline, read).await.unwrap_or_else(|_| Err(late(self.deadline, what)))
+    }
+
+    /// A connection that is closed, not pooled, unless released (see [`Held`]); for statements
+    /// run under [`Db::within`].
+    pub(super) async fn held(&self) -> Result<Held, StoreError> {
+        Ok(Held(Some(self.client().await?)))
+    }
+
+    /// [`Db::query`] for at most one row.
+    pub(super) async fn query_opt(
+        &self,
+        what: &str,
+        sql: &str,
+        params: &[&(dyn tokio_postgres::types::ToSql + Sync)],
+    ) -> Result<Option<tokio_postgres::Row>, StoreError> {
+        Ok(self.query(what, sql, params).await?.map_err(pg_error)?.into_iter().next())
     }
 
     /// Unavailable while the primary does not wait for a synchronous standby.

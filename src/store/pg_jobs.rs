@@ -16,7 +16,8 @@ pub struct JobRow {
 impl PgLog {
     /// A job number that no node of the cluster has given (the log's sequence).
     pub async fn next_job_number(&self) -> Result<u64, StoreError> {
-        let row = self.client().await?.query_one("SELECT nextval('loopd_job_numbers')", &[]).await.map_err(pg_error)?;
+        let row = self.db().query_opt("numbering a job", "SELECT nextval('loopd_job_numbers')", &[]).await?;
+        let row = row.ok_or_else(|| StoreError::Storage("nextval gave no row".into()))?;
         Ok(row.get::<_, i64>(0).max(0) as u64)
     }
 
@@ -48,7 +49,7 @@ impl PgLog {
     /// Job `id`'s record, if the log holds it, and whether it was written within `recent`.
     pub async fn job(&self, id: &str, recent: std::time::Duration) -> Result<Option<JobRow>, StoreError> {
         let sql = "SELECT node, record, updated > now() - make_interval(secs => $2) FROM loopd_jobs WHERE id = $1";
-        let row = self.client().await?.query_opt(sql, &[&id, &recent.as_secs_f64()]).await.map_err(pg_error)?;
+        let row = self.db().query_opt("reading a job", sql, &[&id, &recent.as_secs_f64()]).await?;
         let Some(row) = row else { return Ok(None) };
         let record: serde_json::Value = row.get(1);
         let record = serde_json::to_vec(&record).map_err(|e| StoreError::Storage(format!("job record: {e}")))?;

@@ -343,3 +343,56 @@ async fn a_keyed_write_retried_after_its_commit_timed_out_is_stored_once() {
     assert!(!anew.replayed, "a key of a deleted session is free again");
     log.delete_session("keyed").await.unwrap();
 }
+
+/// Sends `signal` (STOP or CONT) to the postmaster of the server in `var`'s folder.
+fn signal_postmaster(var: &str, signal: &str) {
+    let pid_file = format!("{}/postmaster.pid", env(var));
+    let text = std::fs::read_to_string(&pid_file).expect("postmaster.pid");
+    let pid = text.lines().next().expect("a pid line").trim().to_string();
+    let status = std::process::Command::new("kill").args([&format!("-{signal}"), &pid]).status().unwrap();
+    assert!(status.success(), "kill -{signal} {pid}");
+}
+
+/// Continues the stopped postmaster however the test ends.
+struct Thaw(&'static str);
+
+impl Drop for Thaw {
+    fn drop(&mut self) {
+        signal_postmaster(self.0, "CONT");
+    }
+}
+
+/// Issue #34, T4c's cause: a frozen server (its postmaster stopped with SIGSTOP, as `docker
+/// pause` freezes a container) still completes TCP handshakes from its kernel and never answers
+/// the startup message. Listed first in the URL, it must not hold up the host after it: a node
+/// connects and writes through the primary within a few seconds. Before pg_connect.rs every
+/// opening waited on the frozen host until the pool's deadline (10 s) and failed.
+#[tokio::test]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn a_frozen_server_first_in_the_url_does_not_hold_up_the_primary_after_it() {
+    let (standby, primary) = (env("LOOPD_PG_STANDBY_PORT"), env("LOOPD_PG_PRIMARY_PORT"));
+    let url = format!(
+        "postgres://postgres@127.0.0.1:{standby},127.0.0.1:{primary}/loopd?target_session_attrs=read-write&connect_timeout=1"
+    );
+    let config = LogConfig { deadline: Duration::from_secs(10), ..LogConfig::new(2, Replication::Synchronous) };
+    // Unfrozen, the standby is passed over (read-only) for the primary.
+    let log = PgLog::connect(&url, config).await.expect("connect through the standby to the primary");
+    drop(log);
+
+    signal_postmaster("LOOPD_PG_STANDBY", "STOP");
+    let thaw = Thaw("LOOPD_PG_STANDBY");
+    let started = std::time::Instant::now();
+    let log = PgLog::connect(&url, config).await;
+    let took = started.elapsed();
+    let log = log.unwrap_or_else(|e| panic!("no connection past the frozen server after {took:?}: {e}"));
+    let m = meta("frozen");
+    log.create_session(&m).await.expect("a session created through the primary");
+    log.append(&m, &[frame(0, Some(1))]).await.expect("a frame acknowledged (the standby's walreceiver still runs)");
+    let wrote = started.elapsed();
+    drop(thaw);
+    println!("connected past the frozen server in {took:?}, a frame acknowledged after {wrote:?}");
+    assert!(took < Duration::from_secs(4), "connecting took {took:?} (connect_timeout 1 s per host)");
+    let ids: Vec<u64> = log.frames("frozen", 0).await.unwrap().iter().map(|f| f.frame_id).collect();
+    assert_eq!(ids, [1]);
+    log.delete_session("frozen").await.unwrap();
+}
