@@ -14,10 +14,18 @@
 //!      LOOPD_BENCH_GRAPH_DIMS, LOOPD_BENCH_M, LOOPD_BENCH_EF_ADD (the graph's settings),
 //!      LOOPD_BENCH_FAISS_MAX (largest size FAISS also builds, default 100000; 0: none),
 //!      LOOPD_BENCH_SWEEP_MAX (largest size the search-time settings are swept at, default 100000),
-//!      LOOPD_BENCH_NOISE (the synthetic rows' noise norm, default 0.5)
+//!      LOOPD_BENCH_NOISE (the synthetic rows' noise norm, default 0.5),
+//!      LOOPD_BENCH_ROWS_RESIDENT_MB (the approximate index's rows are in a mapped file, as the
+//!      server keeps them, with this resident bound; default the server's, 1024)
+//!
+//! Memory columns: "approx GiB in process" is what the approximate session holds in the
+//! process (graph, frame records, and the rows mapped in at the end, from /proc/self/smaps);
+//! "rows file GiB" the rows in their mapped file; "RSS GiB" the whole bench (it also holds the
+//! f32 source rows and the exact index).
 use indicatif::{ProgressBar, ProgressStyle};
 use loopd::index::graph::{GraphParams, IndexKind};
 use loopd::index::query::{LoopQuery, Scope};
+use loopd::index::rows::Mapping;
 use loopd::index::{SessionIndex, Storage};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -118,8 +126,8 @@ fn params() -> GraphParams {
     }
 }
 
-fn build(flat: &[f32], kind: IndexKind) -> SessionIndex {
-    let mut index = SessionIndex::new(DIM, Storage::F16);
+fn build(flat: &[f32], kind: IndexKind, mapping: Option<Mapping<'_>>) -> SessionIndex {
+    let mut index = SessionIndex::with_rows(DIM, Storage::F16, mapping);
     index.set_index(kind, params());
     let n = flat.len() / DIM;
     let bar = ProgressBar::new(n as u64)
@@ -132,6 +140,25 @@ fn build(flat: &[f32], kind: IndexKind) -> SessionIndex {
     }
     bar.finish_and_clear();
     index
+}
+
+/// Resident kB of the mappings of files under `dir` (the rows files, unlinked).
+fn mapped_kb(dir: &Path) -> usize {
+    let smaps = std::fs::read_to_string("/proc/self/smaps").unwrap_or_default();
+    let header = |l: &str| {
+        l.split_whitespace()
+            .next()
+            .is_some_and(|f| f.contains('-') && f.chars().all(|c| c.is_ascii_hexdigit() || c == '-'))
+    };
+    let (mut total, mut inside) = (0, false);
+    for line in smaps.lines() {
+        if header(line) {
+            inside = line.contains(dir.to_str().unwrap_or("?"));
+        } else if let Some(kb) = line.strip_prefix("Rss:").filter(|_| inside) {
+            total += kb.trim().trim_end_matches(" kB").parse::<usize>().unwrap_or(0);
+        }
+    }
+    total
 }
 
 fn rss_mib() -> f64 {
@@ -242,13 +269,15 @@ fn main() -> anyhow::Result<()> {
          {} real rows of ../shared/data, the rest synthetic; {nq} real stored-frame queries; exact = loopd's exact kernels, 2 threads\n",
         p.dims, p.connectivity, p.expansion_add, p.expansion_search, p.threads, real.len()
     );
-    println!("| n | median best sim (real / synthetic) | build rows/s | recall@1 | recall@10 | p50 ms | p99 ms | exact p50 ms | same robot (1/16): recall@10, p50 ms | time 25%: recall@10, p50 ms | batch-64 q/s | graph bytes/frame | RSS GiB | FAISS HNSWFlat build rows/s | FAISS ef | FAISS recall@10 | FAISS p50 ms |");
-    println!("|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
+    println!("| n | median best sim (real / synthetic) | build rows/s | recall@1 | recall@10 | p50 ms | p99 ms | exact p50 ms | same robot (1/16): recall@10, p50 ms | time 25%: recall@10, p50 ms | batch-64 q/s | graph bytes/frame | approx GiB in process | rows file GiB | RSS GiB | FAISS HNSWFlat build rows/s | FAISS ef | FAISS recall@10 | FAISS p50 ms |");
+    println!("|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
     let mut sweep = Vec::new();
     for &n in &sizes {
         let flat = rows(&real, n);
-        let exact = build(&flat, IndexKind::Exact);
-        let mut approx = build(&flat, IndexKind::Approximate);
+        let exact = build(&flat, IndexKind::Exact, None);
+        let rows_dir = tempfile::tempdir_in(root().join("target"))?;
+        let resident: usize = env("LOOPD_BENCH_ROWS_RESIDENT_MB", "1024").parse::<usize>()? << 20;
+        let mut approx = build(&flat, IndexKind::Approximate, Some(Mapping { dir: rows_dir.path(), resident }));
         let t = Instant::now();
         approx.index_all().map_err(anyhow::Error::msg)?;
         let rate = n as f64 / t.elapsed().as_secs_f64();
@@ -271,7 +300,8 @@ fn main() -> anyhow::Result<()> {
         let t = Instant::now();
         approx.search_batch(&batch, &LoopQuery { k: 10, ..Default::default() }, 2);
         let batch_qps = batch.len() as f64 / t.elapsed().as_secs_f64();
-        let graph_bytes = approx.memory_bytes() - exact.memory_bytes();
+        // The exact index holds the same frame records and the rows in memory, no graph.
+        let graph_bytes = approx.memory_bytes() + approx.rows_file_bytes() - exact.memory_bytes();
         // Search-time settings on the same graph: recall against time.
         let sweeps: &[(usize, usize)] = if n <= sweep_max {
             &[(64, 4), (128, 8), (256, 8), (256, 16), (512, 16), (512, 32), (1024, 32)]
@@ -284,12 +314,14 @@ fn main() -> anyhow::Result<()> {
             sweep.push(format!("| {n} | {ef} | {} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} |", per * 10 + 64));
         }
         let rss = rss_mib() / 1024.0;
+        let in_process = (approx.memory_bytes() + mapped_kb(rows_dir.path()) * 1024) as f64 / (1u64 << 30) as f64;
+        let rows_file = approx.rows_file_bytes() as f64 / (1u64 << 30) as f64;
         drop(exact);
         drop(approx);
         let f = if n <= faiss_max { faiss(&flat, &queries, r10) } else { None };
         let fc = |g: fn(&Faiss) -> String| f.as_ref().map_or_else(|| "-".to_string(), g);
         println!(
-            "| {n} | {sim_real:.3} / {sim_syn:.3} | {rate:.0} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} | {exact_p50:.2} | {same_r10:.4}, {same_p50:.2} | {tr_r10:.4}, {tr_p50:.2} | {batch_qps:.0} | {} | {rss:.1} | {} | {} | {} | {} |",
+            "| {n} | {sim_real:.3} / {sim_syn:.3} | {rate:.0} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} | {exact_p50:.2} | {same_r10:.4}, {same_p50:.2} | {tr_r10:.4}, {tr_p50:.2} | {batch_qps:.0} | {} | {in_process:.2} | {rows_file:.2} | {rss:.1} | {} | {} | {} | {} |",
             graph_bytes / n,
             fc(|f| format!("{:.0}", f.build_per_s)),
             fc(|f| f.ef.to_string()),

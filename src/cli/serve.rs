@@ -93,6 +93,15 @@ pub struct ServeArgs {
     /// this many frames, and at most a minute after it last grew, so a restart loads it.
     #[arg(long, env = "LOOPD_APPROX_SAVE_FRAMES", default_value_t = GraphParams::default().save_rows)]
     pub approx_save_frames: usize,
+    /// Each session's descriptors live in a file under `<data-dir>/rows/` mapped into memory,
+    /// and the server keeps at most this many MiB of each session's rows in its own memory
+    /// (the rest is the kernel's page cache, dropped under pressure; docs/storage.md).
+    #[arg(long, env = "LOOPD_ROWS_RESIDENT_MB", default_value_t = (crate::store::ROWS_RESIDENT >> 20) as u64)]
+    pub rows_resident_mb: u64,
+    /// Keep every session's descriptors in the server's own memory instead (no row files; the
+    /// process's memory grows with the maps).
+    #[arg(long, env = "LOOPD_ROWS_IN_MEMORY")]
+    pub rows_in_memory: bool,
     /// Loop searches running at once, on blocking threads off the request executor (default:
     /// number of cores); more wait their turn.
     #[arg(long, env = "LOOPD_SEARCH_WORKERS")]
@@ -213,6 +222,7 @@ impl ServeArgs {
                 save_rows: self.approx_save_frames.max(1),
                 ..defaults.graph
             },
+            rows_resident: (!self.rows_in_memory).then_some((self.rows_resident_mb as usize).saturating_mul(1 << 20)),
         })
     }
 

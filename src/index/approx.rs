@@ -120,6 +120,7 @@ impl SessionIndex {
             graph.reduce(&row, &mut out);
             reduced.extend_from_slice(&out);
         }
+        self.note_read(end - start);
         Some(Pending { graph: graph.clone(), start, reduced })
     }
 

@@ -43,6 +43,7 @@ impl SessionIndex {
                 }
             }
         });
+        self.note_read(n);
         let mut heaps: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
         for (part, _) in parts {
             heaps.iter_mut().zip(part).for_each(|(m, h)| m.merge(h));
@@ -160,6 +161,7 @@ impl SessionIndex {
     /// The host kernel's scores of the stored rows `first..first + out.len()`.
     pub(super) fn host_dots(&self, q: &[f32], first: usize, out: &mut [f32]) {
         let range = first * self.dim..(first + out.len()) * self.dim;
+        self.note_read(out.len());
         match &self.rows {
             Rows::F16(v) => dots_f16(q, &v[range], out),
             Rows::F32(v) => dots_f32(q, &v[range], out),

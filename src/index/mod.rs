@@ -11,6 +11,7 @@ pub mod device;
 pub mod graph;
 pub mod kernels;
 pub mod query;
+pub mod rows;
 mod select;
 use select::{Filter, TopK};
 
@@ -63,8 +64,17 @@ pub fn normalize(descriptor: &mut [f32]) -> Result<(), InvalidDescriptor> {
 }
 
 enum Rows {
-    F16(Vec<u16>),
-    F32(Vec<f32>),
+    F16(rows::Column<u16>),
+    F32(rows::Column<f32>),
+}
+
+impl Rows {
+    fn new(storage: Storage, mapping: Option<rows::Mapping<'_>>) -> Self {
+        match storage {
+            Storage::F16 => Rows::F16(rows::Column::new(mapping)),
+            Storage::F32 => Rows::F32(rows::Column::new(mapping)),
+        }
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -133,12 +143,14 @@ pub fn mean_std(values: impl Iterator<Item = f32>) -> (f32, f32) {
 
 impl SessionIndex {
     pub fn new(dim: usize, storage: Storage) -> Self {
+        Self::with_rows(dim, storage, None)
+    }
+
+    /// An index whose rows are in a file mapped into memory (`rows.rs`), or in memory (None).
+    pub fn with_rows(dim: usize, storage: Storage, mapping: Option<rows::Mapping<'_>>) -> Self {
         Self {
             dim,
-            rows: match storage {
-                Storage::F16 => Rows::F16(Vec::new()),
-                Storage::F32 => Rows::F32(Vec::new()),
-            },
+            rows: Rows::new(storage, mapping),
             frames: Vec::new(),
             robots: Vec::new(),
             robot_ids: HashMap::new(),
@@ -214,11 +226,35 @@ impl SessionIndex {
 
     pub fn memory_bytes(&self) -> usize {
         let rows = match &self.rows {
-            Rows::F16(v) => v.capacity() * 2,
-            Rows::F32(v) => v.capacity() * 4,
+            Rows::F16(v) => v.memory_bytes(),
+            Rows::F32(v) => v.memory_bytes(),
         };
         let graph = self.graph.as_ref().map_or(0, |g| g.memory_bytes());
         rows + self.frames.capacity() * std::mem::size_of::<FrameMeta>() + graph
+    }
+
+    /// Bytes of rows in a file mapped into memory (0 when they are in memory).
+    pub fn rows_file_bytes(&self) -> usize {
+        match &self.rows {
+            Rows::F16(v) => v.file_bytes(),
+            Rows::F32(v) => v.file_bytes(),
+        }
+    }
+
+    /// Whether the rows are in a mapped file.
+    pub fn rows_mapped(&self) -> bool {
+        match &self.rows {
+            Rows::F16(v) => v.is_mapped(),
+            Rows::F32(v) => v.is_mapped(),
+        }
+    }
+
+    /// Counts `rows` rows read (see `rows::Column::note_read`).
+    fn note_read(&self, rows: usize) {
+        match &self.rows {
+            Rows::F16(v) => v.note_read(rows * self.dim),
+            Rows::F32(v) => v.note_read(rows * self.dim),
+        }
     }
 
     /// Appends one unit descriptor (the caller has checked dim and uniqueness).
@@ -236,7 +272,7 @@ impl SessionIndex {
         };
         match &mut self.rows {
             Rows::F16(v) => v.extend(descriptor.iter().map(|&x| half::f16::from_f32(x).to_bits())),
-            Rows::F32(v) => v.extend_from_slice(descriptor),
+            Rows::F32(v) => v.extend(descriptor.iter().copied()),
         }
         let row = self.frames.len();
         self.frames.push(FrameMeta { frame_id, robot, timestamp, pose, votes: Vec::new() });
@@ -378,6 +414,7 @@ impl SessionIndex {
                 }
             }
         });
+        self.note_read(self.frames.len());
         let mut heap = TopK::new(k);
         parts.into_iter().for_each(|(h, _)| heap.merge(h));
         heap.sorted().into_iter().map(|(score, row)| self.to_match(score, row)).collect()

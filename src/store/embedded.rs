@@ -24,7 +24,7 @@ impl Operations for Sled {
             if store.sessions.read().contains_key(&meta.id) {
                 return Err(StoreError::SessionExists(meta.id));
             }
-            let session = Session::load(&disk.db, meta.clone(), store.search, &store.graph_dir())?;
+            let session = Session::load(&disk.db, meta.clone(), store.search, &store.graph_dir(), &store.rows_dir())?;
             store
                 .note(disk.sessions.insert(meta.id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises")))?;
             store.sessions.write().insert(meta.id.clone(), Arc::new(session));

@@ -13,6 +13,7 @@ pub mod loops;
 mod operations;
 mod owners;
 pub mod pg;
+mod pg_connect;
 mod pg_db;
 mod pg_jobs;
 mod pg_members;
@@ -92,6 +93,8 @@ pub struct SessionInfo {
     pub frames: usize,
     pub robots: Vec<String>,
     pub bytes_on_disk: u64,
+    /// The server's own memory for the session: frame records, the approximate index's graph,
+    /// and the rows when kept in memory (`--rows-in-memory`; mapped rows are the page cache's).
     pub bytes_in_memory: usize,
     /// Frames the approximate index covers (the newest others are searched exactly until the
     /// indexer adds them); absent while the session searches exactly.
@@ -191,11 +194,26 @@ pub struct SearchConfig {
     pub max_concurrent: usize,
     /// The approximate index's shape, and when `auto` sessions switch to it.
     pub graph: crate::index::graph::GraphParams,
+    /// Each session's rows in a file under `<data-dir>/rows/` mapped into memory, at most this
+    /// many bytes of them kept in the process (`index/rows.rs`); None: rows in memory.
+    pub rows_resident: Option<usize>,
 }
+
+/// The folder (under the data directory) sessions' row files are made in.
+const ROWS_DIR: &str = "rows";
+
+/// The default of [`SearchConfig::rows_resident`]: 1 GiB per session.
+pub const ROWS_RESIDENT: usize = 1 << 30;
 
 impl Default for SearchConfig {
     fn default() -> Self {
-        Self { device: None, device_min_rows: 4096, max_concurrent: cores(), graph: Default::default() }
+        Self {
+            device: None,
+            device_min_rows: 4096,
+            max_concurrent: cores(),
+            graph: Default::default(),
+            rows_resident: Some(ROWS_RESIDENT),
+        }
     }
 }
 
@@ -221,6 +239,7 @@ impl Store {
         std::fs::create_dir_all(dir).map_err(|e| StoreError::Storage(format!("{}: {e}", dir.display())))?;
         let graphs = dir.join(indexer::GRAPH_DIR);
         std::fs::create_dir_all(&graphs).map_err(|e| StoreError::Storage(format!("{}: {e}", graphs.display())))?;
+        let rows = dir.join(ROWS_DIR);
         let health = Arc::new(Health::default());
         let disk = Disk::open(dir, health.clone())?;
         let t = Instant::now();
@@ -242,7 +261,7 @@ impl Store {
         for entry in disk.sessions.iter() {
             let (_, v) = entry?;
             let meta: SessionMeta = serde_json::from_slice(&v).map_err(|e| StoreError::Storage(e.to_string()))?;
-            let session = Session::load(&disk.db, meta, search, &graphs)?;
+            let session = Session::load(&disk.db, meta, search, &graphs, &rows)?;
             let index = session.index.read();
             index.upload();
             frames += index.len();
@@ -417,6 +436,11 @@ impl Store {
     /// Where sessions' approximate indexes are saved (`indexer.rs`).
     fn graph_dir(&self) -> PathBuf {
         self.dir.join(indexer::GRAPH_DIR)
+    }
+
+    /// Where sessions' row files are made (unlinked at once: the folder looks empty).
+    fn rows_dir(&self) -> PathBuf {
+        self.dir.join(ROWS_DIR)
     }
 
     fn disk(&self) -> Result<MappedRwLockReadGuard<'_, Disk>, StoreError> {

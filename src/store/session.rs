@@ -123,9 +123,11 @@ impl Session {
         meta: SessionMeta,
         search: SearchConfig,
         graphs: &Path,
+        rows: &Path,
     ) -> Result<Self, StoreError> {
         let trees = Trees::open(db, &meta.id)?;
-        let mut index = SessionIndex::new(meta.dim, meta.storage);
+        let mapping = search.rows_resident.map(|resident| crate::index::rows::Mapping { dir: rows, resident });
+        let mut index = SessionIndex::with_rows(meta.dim, meta.storage, mapping);
         if let Some(device) = search.device {
             index.search_on(device, search.device_min_rows);
         }

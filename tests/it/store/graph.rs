@@ -6,7 +6,7 @@ use loopd::index::graph::{Graph, GraphParams};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 /// Every Nordland image (summer, then winter) as a unit row of its raw pixels.
-fn nordland_rows() -> (Vec<Vec<f32>>, usize) {
+pub(super) fn nordland_rows() -> (Vec<Vec<f32>>, usize) {
     let mut rows = Vec::new();
     for season in ["summer", "winter"] {
         let dir = data(&format!("nordland-64x32/{season}"));

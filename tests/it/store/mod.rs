@@ -1,3 +1,4 @@
 mod graph;
+mod rows;
 mod search_pool;
 mod sessions;

@@ -1,0 +1,164 @@
+//! Issue #33, bounded memory: a session's rows in a file mapped into memory (`index/rows.rs`).
+//! On the 4,800 Nordland images (raw pixels, 6,144-d f16: 59 MB of rows), mapped rows answer
+//! exactly as rows in memory, exact and through the graph, and the process keeps no more of them
+//! mapped in than its bound (read from /proc/self/smaps: the mapping of the unlinked file).
+use super::graph::nordland_rows;
+use loopd::index::graph::{GraphParams, IndexKind};
+use loopd::index::query::LoopQuery;
+use loopd::index::rows::Mapping;
+use loopd::index::{SessionIndex, Storage};
+use loopd::store::{NewFrame, NewSession, SearchConfig, Store};
+use std::path::Path;
+
+/// Resident kB of the mappings of files under `dir` (the rows files, unlinked).
+fn mapped_kb(dir: &Path) -> usize {
+    let smaps = std::fs::read_to_string("/proc/self/smaps").unwrap_or_default();
+    let header = |l: &str| {
+        l.split_whitespace()
+            .next()
+            .is_some_and(|f| f.contains('-') && f.chars().all(|c| c.is_ascii_hexdigit() || c == '-'))
+    };
+    let (mut total, mut inside) = (0, false);
+    for line in smaps.lines() {
+        if header(line) {
+            inside = line.contains(dir.to_str().unwrap_or("?"));
+        } else if let Some(kb) = line.strip_prefix("Rss:").filter(|_| inside) {
+            total += kb.trim().trim_end_matches(" kB").parse::<usize>().unwrap_or(0);
+        }
+    }
+    total
+}
+
+fn filled(rows: &[Vec<f32>], dim: usize, mapping: Option<Mapping<'_>>) -> SessionIndex {
+    let mut index = SessionIndex::with_rows(dim, Storage::F16, mapping);
+    for (i, r) in rows.iter().enumerate() {
+        index.push(i as u64, if i < 2400 { "summer" } else { "winter" }, i as f64, None, r);
+    }
+    index
+}
+
+#[test]
+fn mapped_rows_answer_as_rows_in_memory_and_stay_within_their_resident_bound() {
+    let (rows, dim) = nordland_rows();
+    let dir = tempfile::tempdir().unwrap();
+    let bound = 4 << 20;
+    let memory = filled(&rows, dim, None);
+    let mapped = filled(&rows, dim, Some(Mapping { dir: dir.path(), resident: bound }));
+    assert!(mapped.rows_mapped() && !memory.rows_mapped());
+    assert_eq!(mapped.rows_file_bytes(), rows.len() * dim * 2);
+    assert!(
+        mapped.memory_bytes() + mapped.rows_file_bytes() / 2 < memory.memory_bytes(),
+        "mapped rows are not the process's memory: {} against {}",
+        mapped.memory_bytes(),
+        memory.memory_bytes()
+    );
+    // The file was unlinked when made: nothing to clean up after a crash.
+    assert_eq!(std::fs::read_dir(dir.path().join("")).unwrap().count(), 0);
+
+    // Winter queries against summer: the same answers, scores bit for bit.
+    let opts = LoopQuery {
+        k: 10,
+        robot_id: Some("winter".into()),
+        scope: loopd::index::query::Scope::OtherRobots,
+        ..Default::default()
+    };
+    let mut worst = 0usize;
+    for q in rows[2400..].iter().step_by(97) {
+        let (a, b) = (memory.search(q, &opts, 2), mapped.search(q, &opts, 2));
+        let ids =
+            |m: &[loopd::index::query::Match]| m.iter().map(|m| (m.frame_id, m.score.to_bits())).collect::<Vec<_>>();
+        assert_eq!(ids(&a), ids(&b));
+        worst = worst.max(mapped_kb(dir.path()));
+    }
+    // Each exact scan reads 59 MB, over the bound: released after it.
+    let after = mapped_kb(dir.path());
+    println!(
+        "rows file {} MB, resident after a scan {after} kB (bound {} kB), most seen {worst} kB",
+        mapped.rows_file_bytes() >> 20,
+        bound >> 10
+    );
+    assert!(after * 1024 <= bound, "{after} kB of rows mapped in after the scans, bound {} kB", bound >> 10);
+
+    // With a bound above the file, the rows stay mapped in (what a small exact session wants).
+    let dir2 = tempfile::tempdir().unwrap();
+    let whole = filled(&rows, dim, Some(Mapping { dir: dir2.path(), resident: 1 << 30 }));
+    whole.search(&rows[2500], &opts, 2);
+    let kept = mapped_kb(dir2.path());
+    assert!(
+        kept * 1024 >= whole.rows_file_bytes() * 9 / 10,
+        "{kept} kB mapped in of {} bytes",
+        whole.rows_file_bytes()
+    );
+
+    // Through the graph: candidates re-scored on mapped rows give the in-memory answers too.
+    let params = GraphParams { dims: 0, exact_below: 0, exact_share: 0.0, ..Default::default() };
+    let (mut memory, mut mapped) = (memory, mapped);
+    memory.set_index(IndexKind::Approximate, params);
+    mapped.set_index(IndexKind::Approximate, params);
+    memory.index_all().unwrap();
+    mapped.index_all().unwrap();
+    for q in rows[2400..].iter().step_by(211) {
+        let (a, b) = (memory.search(q, &opts, 1), mapped.search(q, &opts, 1));
+        assert_eq!(a.first().map(|m| m.frame_id), b.first().map(|m| m.frame_id));
+    }
+    assert!(mapped_kb(dir.path()) * 1024 <= bound + (dim * 2 * 1000), "graph searches keep the bound");
+}
+
+/// The store maps every session's rows by default; a reopened store writes them again from sled
+/// and answers the same, and so does one keeping rows in memory.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_store_keeps_its_sessions_rows_mapped_and_rebuilds_them_when_reopened() {
+    let (rows, dim) = nordland_rows();
+    let dir = tempfile::tempdir().unwrap();
+    let picks: Vec<usize> = (0..4800).step_by(8).collect();
+    let opts = LoopQuery {
+        k: 5,
+        robot_id: Some("winter".into()),
+        scope: loopd::index::query::Scope::OtherRobots,
+        ..Default::default()
+    };
+    let answers = |store: &Store| -> Vec<Vec<u64>> {
+        let s = store.session("nordland").unwrap();
+        let winter = picks.iter().filter(|&&i| i >= 2400);
+        winter.map(|&i| s.search(rows[i].clone(), &opts, 1).unwrap().iter().map(|m| m.frame_id).collect()).collect()
+    };
+    let before = {
+        let store = Store::open_with(dir.path(), SearchConfig::default()).unwrap();
+        let new = NewSession {
+            name: "nordland".into(),
+            dim,
+            descriptor_id: "nordland-pixels".into(),
+            storage: Storage::F16,
+            default_query: Default::default(),
+            camera: None,
+            thumbnails: false,
+            index: Default::default(),
+        };
+        store.create_session(Some("nordland".into()), new).await.unwrap();
+        let frames: Vec<NewFrame> = picks
+            .iter()
+            .map(|&i| NewFrame {
+                frame_id: Some(i as u64),
+                robot_id: if i < 2400 { "summer".into() } else { "winter".into() },
+                timestamp: i as f64,
+                pose: None,
+                metadata: None,
+                descriptor: rows[i].clone(),
+                features: None,
+                thumbnail: None,
+                idempotency_key: None,
+            })
+            .collect();
+        store.add_frames(&store.session("nordland").unwrap(), frames).await.unwrap();
+        let info = store.session("nordland").unwrap().info();
+        assert_eq!(info.frames, picks.len());
+        assert!(info.bytes_in_memory < picks.len() * dim, "rows counted in memory: {}", info.bytes_in_memory);
+        answers(&store)
+    };
+    let store = Store::open_with(dir.path(), SearchConfig::default()).unwrap();
+    assert_eq!(answers(&store), before, "reopened: rows written again from sled");
+    drop(store);
+    let memory = Store::open_with(dir.path(), SearchConfig { rows_resident: None, ..Default::default() }).unwrap();
+    assert_eq!(answers(&memory), before, "rows in memory answer the same");
+    assert!(memory.session("nordland").unwrap().info().bytes_in_memory >= picks.len() * dim * 2);
+}
