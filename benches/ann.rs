@@ -142,25 +142,6 @@ fn build(flat: &[f32], kind: IndexKind, mapping: Option<Mapping<'_>>) -> Session
     index
 }
 
-/// Resident kB of the mappings of files under `dir` (the rows files, unlinked).
-fn mapped_kb(dir: &Path) -> usize {
-    let smaps = std::fs::read_to_string("/proc/self/smaps").unwrap_or_default();
-    let header = |l: &str| {
-        l.split_whitespace()
-            .next()
-            .is_some_and(|f| f.contains('-') && f.chars().all(|c| c.is_ascii_hexdigit() || c == '-'))
-    };
-    let (mut total, mut inside) = (0, false);
-    for line in smaps.lines() {
-        if header(line) {
-            inside = line.contains(dir.to_str().unwrap_or("?"));
-        } else if let Some(kb) = line.strip_prefix("Rss:").filter(|_| inside) {
-            total += kb.trim().trim_end_matches(" kB").parse::<usize>().unwrap_or(0);
-        }
-    }
-    total
-}
-
 fn rss_mib() -> f64 {
     let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
     let kb: f64 = s
@@ -314,7 +295,8 @@ fn main() -> anyhow::Result<()> {
             sweep.push(format!("| {n} | {ef} | {} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} |", per * 10 + 64));
         }
         let rss = rss_mib() / 1024.0;
-        let in_process = (approx.memory_bytes() + mapped_kb(rows_dir.path()) * 1024) as f64 / (1u64 << 30) as f64;
+        let in_process =
+            (approx.memory_bytes() + loopd::index::rows::mapped_bytes(rows_dir.path())) as f64 / (1u64 << 30) as f64;
         let rows_file = approx.rows_file_bytes() as f64 / (1u64 << 30) as f64;
         drop(exact);
         drop(approx);

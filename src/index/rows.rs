@@ -215,3 +215,26 @@ fn unlinked_file(dir: &Path) -> std::io::Result<File> {
     std::fs::remove_file(&path)?;
     Ok(file)
 }
+
+/// Bytes of this process's mappings of files under `dir` that are mapped in now (the `Rss` of
+/// each in /proc/self/smaps; a row file's mapping reads "`<dir>/rows-…` (deleted)"). 0 where
+/// /proc cannot be read.
+pub fn mapped_bytes(dir: &Path) -> usize {
+    let Ok(smaps) = std::fs::read_to_string("/proc/self/smaps") else { return 0 };
+    let Some(dir) = dir.to_str() else { return 0 };
+    // A mapping's first line starts with its address range ("7f3a…-7f3b…").
+    let header = |l: &str| {
+        l.split_whitespace()
+            .next()
+            .is_some_and(|f| f.contains('-') && f.chars().all(|c| c.is_ascii_hexdigit() || c == '-'))
+    };
+    let (mut kb, mut inside) = (0usize, false);
+    for line in smaps.lines() {
+        if header(line) {
+            inside = line.contains(dir);
+        } else if let Some(v) = line.strip_prefix("Rss:").filter(|_| inside) {
+            kb += v.trim().trim_end_matches(" kB").parse::<usize>().unwrap_or(0);
+        }
+    }
+    kb * 1024
+}

@@ -10,23 +10,9 @@ use loopd::index::{SessionIndex, Storage};
 use loopd::store::{NewFrame, NewSession, SearchConfig, Store};
 use std::path::Path;
 
-/// Resident kB of the mappings of files under `dir` (the rows files, unlinked).
-fn mapped_kb(dir: &Path) -> usize {
-    let smaps = std::fs::read_to_string("/proc/self/smaps").unwrap_or_default();
-    let header = |l: &str| {
-        l.split_whitespace()
-            .next()
-            .is_some_and(|f| f.contains('-') && f.chars().all(|c| c.is_ascii_hexdigit() || c == '-'))
-    };
-    let (mut total, mut inside) = (0, false);
-    for line in smaps.lines() {
-        if header(line) {
-            inside = line.contains(dir.to_str().unwrap_or("?"));
-        } else if let Some(kb) = line.strip_prefix("Rss:").filter(|_| inside) {
-            total += kb.trim().trim_end_matches(" kB").parse::<usize>().unwrap_or(0);
-        }
-    }
-    total
+/// Resident kB of the process's mappings of files under `dir`.
+fn kb(dir: &Path) -> usize {
+    loopd::index::rows::mapped_bytes(dir) / 1024
 }
 
 fn filled(rows: &[Vec<f32>], dim: usize, mapping: Option<Mapping<'_>>) -> SessionIndex {
@@ -68,10 +54,10 @@ fn mapped_rows_answer_as_rows_in_memory_and_stay_within_their_resident_bound() {
         let ids =
             |m: &[loopd::index::query::Match]| m.iter().map(|m| (m.frame_id, m.score.to_bits())).collect::<Vec<_>>();
         assert_eq!(ids(&a), ids(&b));
-        worst = worst.max(mapped_kb(dir.path()));
+        worst = worst.max(kb(dir.path()));
     }
     // Each exact scan reads 59 MB, over the bound: released after it.
-    let after = mapped_kb(dir.path());
+    let after = kb(dir.path());
     println!(
         "rows file {} MB, resident after a scan {after} kB (bound {} kB), most seen {worst} kB",
         mapped.rows_file_bytes() >> 20,
@@ -83,7 +69,7 @@ fn mapped_rows_answer_as_rows_in_memory_and_stay_within_their_resident_bound() {
     let dir2 = tempfile::tempdir().unwrap();
     let whole = filled(&rows, dim, Some(Mapping { dir: dir2.path(), resident: 1 << 30 }));
     whole.search(&rows[2500], &opts, 2);
-    let kept = mapped_kb(dir2.path());
+    let kept = kb(dir2.path());
     assert!(
         kept * 1024 >= whole.rows_file_bytes() * 9 / 10,
         "{kept} kB mapped in of {} bytes",
@@ -101,7 +87,7 @@ fn mapped_rows_answer_as_rows_in_memory_and_stay_within_their_resident_bound() {
         let (a, b) = (memory.search(q, &opts, 1), mapped.search(q, &opts, 1));
         assert_eq!(a.first().map(|m| m.frame_id), b.first().map(|m| m.frame_id));
     }
-    assert!(mapped_kb(dir.path()) * 1024 <= bound + (dim * 2 * 1000), "graph searches keep the bound");
+    assert!(kb(dir.path()) * 1024 <= bound + (dim * 2 * 1000), "graph searches keep the bound");
 }
 
 /// The store maps every session's rows by default; a reopened store writes them again from sled
