@@ -229,8 +229,12 @@ impl SessionIndex {
             Rows::F16(v) => v.memory_bytes(),
             Rows::F32(v) => v.memory_bytes(),
         };
-        let graph = self.graph.as_ref().map_or(0, |g| g.memory_bytes());
-        rows + self.frames.capacity() * std::mem::size_of::<FrameMeta>() + graph
+        rows + self.frames.capacity() * std::mem::size_of::<FrameMeta>() + self.graph_bytes()
+    }
+
+    /// The approximate index's memory (0 without one).
+    pub fn graph_bytes(&self) -> usize {
+        self.graph.as_ref().map_or(0, |g| g.memory_bytes())
     }
 
     /// Bytes of rows in a file mapped into memory (0 when they are in memory).
