@@ -28,90 +28,22 @@ use loopd::index::graph::{GraphParams, IndexKind};
 use loopd::index::query::{LoopQuery, Scope};
 use loopd::index::rows::Mapping;
 use loopd::index::{SessionIndex, Storage};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
-const DIM: usize = 1712;
+#[path = "common/embedded_rows.rs"]
+mod embedded_rows;
+use embedded_rows::{real_rows, root, Extension, DIM};
 const ROBOTS: usize = 16;
 
 fn env(name: &str, default: &str) -> String {
     std::env::var(name).unwrap_or_else(|_| default.to_string())
 }
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-/// Every image under ../shared/data, embedded with the shipped model (cached).
-fn real_rows() -> anyhow::Result<Vec<Vec<f32>>> {
-    let data = root().join("../shared/data");
-    let mut files = Vec::new();
-    let mut dirs = vec![data];
-    while let Some(d) = dirs.pop() {
-        for e in std::fs::read_dir(&d)? {
-            let p = e?.path();
-            if p.is_dir() {
-                dirs.push(p);
-            } else if loopd::files::is_image(&p.file_name().unwrap_or_default().to_string_lossy()) {
-                files.push(p);
-            }
-        }
-    }
-    files.sort();
-    let weights = root().join("weights/resnet50-imagenet.safetensors");
-    let (mut model, _) = loopd::model::Model::load(
-        &weights,
-        loopd::model::config::ModelConfig::default(),
-        tch::Device::Cpu,
-        loopd::model::device::DType::F32,
-    )?;
-    model.load_heads(&root().join(loopd::cli::DEFAULT_HEADS))?;
-    let cfg = loopd::engine::EngineConfig { max_batch: 16, warm_up: false, ..Default::default() };
-    let engine = loopd::engine::Engine::start(model, cfg, Default::default())?;
-    let cache = root().join("target/bench-cache");
-    let setup = loopd::eval::run::EmbedSetup {
-        weights: &weights,
-        variant: loopd::model::network::Variant::FULL,
-        cache_dir: Some(&cache),
-        max_batch: 16,
-    };
-    loopd::eval::run::embed_files(&engine, &files, &setup, "every image of ../shared/data")
-}
-
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E3779B97F4A7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58476D1CE4E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D049BB133111EB);
-        z ^ (z >> 31)
-    }
-    fn unit(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    fn gauss(&mut self) -> f32 {
-        let (u, v) = (self.unit().max(1e-7), self.unit());
-        (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
-    }
-}
-
 /// `n` unit rows (row-major): the real rows first, then the synthetic extension.
 fn rows(real: &[Vec<f32>], n: usize) -> Vec<f32> {
     let mut out = Vec::with_capacity(n * DIM);
-    let mut rng = Rng(7);
-    let sigma = env("LOOPD_BENCH_NOISE", "0.5").parse::<f32>().unwrap_or(0.5) / (DIM as f32).sqrt();
-    for i in 0..n {
-        if i < real.len() {
-            out.extend_from_slice(&real[i]);
-            continue;
-        }
-        let (a, b) = (&real[rng.next() as usize % real.len()], &real[rng.next() as usize % real.len()]);
-        let w = 0.5 + 0.5 * rng.unit();
-        let mut v: Vec<f32> = a.iter().zip(b).map(|(x, y)| w * x + (1.0 - w) * y + sigma * rng.gauss()).collect();
-        loopd::index::normalize(&mut v).expect("non-zero");
-        out.extend_from_slice(&v);
-    }
+    Extension::new(real).take(n).for_each(|r| out.extend_from_slice(&r));
     out
 }
 

@@ -102,6 +102,12 @@ pub struct ServeArgs {
     /// process's memory grows with the maps).
     #[arg(long, env = "LOOPD_ROWS_IN_MEMORY")]
     pub rows_in_memory: bool,
+    /// With mapped rows, each session's rows and frame records are kept in `<data-dir>/rows/`
+    /// across restarts, checkpointed each time the session has grown by this many frames and at
+    /// most a minute after it last grew: a restart reads only the frames after the checkpoint
+    /// from the database (docs/storage.md).
+    #[arg(long, env = "LOOPD_ROWS_CHECKPOINT_FRAMES", default_value_t = crate::store::CHECKPOINT_FRAMES)]
+    pub rows_checkpoint_frames: usize,
     /// Loop searches running at once, on blocking threads off the request executor (default:
     /// number of cores); more wait their turn.
     #[arg(long, env = "LOOPD_SEARCH_WORKERS")]
@@ -223,6 +229,7 @@ impl ServeArgs {
                 ..defaults.graph
             },
             rows_resident: (!self.rows_in_memory).then_some((self.rows_resident_mb as usize).saturating_mul(1 << 20)),
+            checkpoint_frames: self.rows_checkpoint_frames.max(1),
         })
     }
 

@@ -168,7 +168,7 @@ impl SessionIndex {
         }
     }
 
-    pub(super) fn storage(&self) -> Storage {
+    pub fn storage(&self) -> Storage {
         match self.rows {
             Rows::F16(_) => Storage::F16,
             Rows::F32(_) => Storage::F32,

@@ -163,6 +163,38 @@ impl SessionIndex {
         }
     }
 
+    /// An index over rows kept in `file` by the store across restarts (`rows::Column::in_file`):
+    /// `frames` describes the file's first rows, in order (frame id, robot, timestamp, pose);
+    /// rows after them are cut off, and new frames are appended to the file.
+    pub fn with_file<'a>(
+        dim: usize,
+        storage: Storage,
+        file: std::fs::File,
+        resident: usize,
+        frames: impl ExactSizeIterator<Item = (u64, &'a str, f64, Option<Pose>)>,
+    ) -> std::io::Result<Self> {
+        let mut index = Self::with_rows(dim, storage, None);
+        let values = frames.len() * dim;
+        index.rows = match storage {
+            Storage::F16 => Rows::F16(rows::Column::in_file(file, values, resident)?),
+            Storage::F32 => Rows::F32(rows::Column::in_file(file, values, resident)?),
+        };
+        for (frame_id, robot_id, timestamp, pose) in frames {
+            index.push_meta(frame_id, robot_id, timestamp, pose);
+        }
+        Ok(index)
+    }
+
+    /// A handle on the file the rows are written to (None when they are in memory), to make
+    /// them durable with (`File::sync_data`) outside the session's lock.
+    pub fn rows_file(&self) -> Option<std::io::Result<std::fs::File>> {
+        let file = match &self.rows {
+            Rows::F16(v) => v.file(),
+            Rows::F32(v) => v.file(),
+        };
+        file.map(std::fs::File::try_clone)
+    }
+
     /// Searches on `device` (scores and top-k there) once the session holds `min_rows` rows.
     /// The host rows stay the source of truth; the device copy is topped up before each search.
     pub fn search_on(&mut self, device: tch::Device, min_rows: usize) {
@@ -264,6 +296,16 @@ impl SessionIndex {
     /// Appends one unit descriptor (the caller has checked dim and uniqueness).
     pub fn push(&mut self, frame_id: u64, robot_id: &str, timestamp: f64, pose: Option<Pose>, descriptor: &[f32]) {
         debug_assert_eq!(descriptor.len(), self.dim);
+        match &mut self.rows {
+            Rows::F16(v) => v.extend(descriptor.iter().map(|&x| half::f16::from_f32(x).to_bits())),
+            Rows::F32(v) => v.extend(descriptor.iter().copied()),
+        }
+        self.push_meta(frame_id, robot_id, timestamp, pose);
+        self.start_graph_when_due();
+    }
+
+    /// The frame's record, for the row appended last.
+    fn push_meta(&mut self, frame_id: u64, robot_id: &str, timestamp: f64, pose: Option<Pose>) {
         let robot = match self.robot_ids.get(robot_id) {
             Some(&r) => r,
             None => {
@@ -274,10 +316,6 @@ impl SessionIndex {
                 r
             }
         };
-        match &mut self.rows {
-            Rows::F16(v) => v.extend(descriptor.iter().map(|&x| half::f16::from_f32(x).to_bits())),
-            Rows::F32(v) => v.extend(descriptor.iter().copied()),
-        }
         let row = self.frames.len();
         self.frames.push(FrameMeta { frame_id, robot, timestamp, pose, votes: Vec::new() });
         self.by_frame.insert(frame_id, row);
@@ -289,7 +327,6 @@ impl SessionIndex {
             }
             _ => ids.push(frame_id),
         }
-        self.start_graph_when_due();
     }
 
     /// The frame's robot and its position in that robot's trajectory (frames in id order).

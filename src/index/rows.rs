@@ -90,6 +90,34 @@ impl<T: Value> Column<T> {
         }
     }
 
+    /// Rows in `file`, a file the store keeps under a name of its own (`store/kept.rs`): the
+    /// first `values` values are taken as written, anything after them is cut off, and new rows
+    /// are appended. The data directory is this server's alone (sled's lock), and a later load
+    /// of the same session puts a new file in its place (a rename) rather than writing this one.
+    pub(crate) fn in_file(file: File, values: usize, resident: usize) -> std::io::Result<Self> {
+        file.set_len((values * std::mem::size_of::<T>()) as u64)?;
+        let mut m = Mapped {
+            file,
+            map: None,
+            mapped_bytes: 0,
+            len: 0,
+            read: AtomicUsize::new(0),
+            resident,
+            _values: PhantomData,
+        };
+        m.cover(values)?;
+        m.len = values;
+        Ok(Column::Mapped(m))
+    }
+
+    /// The file a mapped column writes (None in memory).
+    pub(crate) fn file(&self) -> Option<&File> {
+        match self {
+            Column::Memory(_) => None,
+            Column::Mapped(m) => Some(&m.file),
+        }
+    }
+
     pub(crate) fn is_mapped(&self) -> bool {
         matches!(self, Column::Mapped(_))
     }
@@ -163,10 +191,14 @@ impl<T: Value> Mapped<T> {
             // SAFETY: the mapping starts on a page boundary (aligned for u16 and f32) and covers
             // `mapped_bytes >= len * size_of::<T>()` bytes; the first `len` values of the file
             // were written (pwrite, visible through the shared mapping: one page cache) before
-            // `len` counted them, so every byte read lies inside the file. Only this column
-            // writes the file (it was unlinked when created: no name to open it by), appending
-            // past `len` through `&mut self`, so no value in the returned slice changes while
-            // the `&self` borrow lasts. u16 and f32 accept any bit pattern.
+            // `len` counted them (or, for a kept file, were in it when the column took it and
+            // the file was cut to them), so every byte read lies inside the file. Only this
+            // column writes the file or changes its length (an unlinked file has no name to open
+            // it by; a kept file lies in the data directory, which sled's lock makes this
+            // server's alone, and a later load of the session renames a new file over its name
+            // instead of writing it), appending past `len` through `&mut self`, so no value in
+            // the returned slice changes while the `&self` borrow lasts. u16 and f32 accept any
+            // bit pattern.
             Some(map) => unsafe { std::slice::from_raw_parts(map.as_ptr() as *const T, self.len) },
         }
     }
@@ -178,16 +210,23 @@ impl<T: Value> Mapped<T> {
         // A write that fails leaves `len` as it was: the values before it are whole.
         self.file.write_all_at(&bytes, (self.len * size) as u64)?;
         let len = self.len + values.len();
+        self.cover(len)?;
+        self.len = len;
+        Ok(())
+    }
+
+    /// Maps (again, larger) so that the mapping covers `len` values.
+    fn cover(&mut self, len: usize) -> std::io::Result<()> {
+        let size = std::mem::size_of::<T>();
         if len * size > self.mapped_bytes {
             let bytes = (len * size).max(2 * self.mapped_bytes).max(MIN_MAPPED_BYTES);
-            // SAFETY: a shared read-only mapping of a file only this column writes (unlinked
-            // when created); the mapping may reach past the file's end, but reads stay below
-            // `len` values, which the file holds (see `as_slice`).
+            // SAFETY: a shared read-only mapping of a file only this column writes (see
+            // `as_slice`); the mapping may reach past the file's end, but reads stay below
+            // `len` values, which the file holds.
             let map = unsafe { memmap2::MmapOptions::new().len(bytes).map(&self.file)? };
             self.map = Some(map);
             self.mapped_bytes = bytes;
         }
-        self.len = len;
         Ok(())
     }
 

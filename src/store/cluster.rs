@@ -425,8 +425,14 @@ impl Cluster {
         }
         store.remove_locked(&head.meta.id)?;
         let disk = store.disk()?;
-        let mut session =
-            Session::load(&disk.db, head.meta.clone(), store.search, &store.graph_dir(), &store.rows_dir())?;
+        let mut session = Session::load(
+            &disk.db,
+            head.meta.clone(),
+            store.search,
+            &store.graph_dir(),
+            &store.rows_dir(),
+            super::Keep::No,
+        )?;
         (session.tbl, session.epoch) = (head.tbl, epoch);
         let meta = serde_json::to_vec(&head.meta).map_err(|e| StoreError::Storage(e.to_string()))?;
         store.note(disk.sessions.insert(head.meta.id.as_bytes(), meta))?;

@@ -7,7 +7,6 @@ use super::operations::Operations;
 use super::owners::{ClusterView, Membership};
 use super::record::SessionMeta;
 use super::{durability, NewFrame, Session, SessionInfo, Store, StoreError};
-use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 
 pub(super) struct Sled;
@@ -24,7 +23,14 @@ impl Operations for Sled {
             if store.sessions.read().contains_key(&meta.id) {
                 return Err(StoreError::SessionExists(meta.id));
             }
-            let session = Session::load(&disk.db, meta.clone(), store.search, &store.graph_dir(), &store.rows_dir())?;
+            let session = Session::load(
+                &disk.db,
+                meta.clone(),
+                store.search,
+                &store.graph_dir(),
+                &store.rows_dir(),
+                super::Keep::Fresh,
+            )?;
             store
                 .note(disk.sessions.insert(meta.id.as_bytes(), serde_json::to_vec(&meta).expect("meta serialises")))?;
             store.sessions.write().insert(meta.id.clone(), Arc::new(session));
@@ -56,11 +62,12 @@ impl Operations for Sled {
         key: Option<KeyGuard>,
     ) -> Result<Vec<u64>, StoreError> {
         let written = store.note(Store::write_frames(s, &prepared));
-        let (written, added_bytes) = written?;
+        let (written, sizes) = written?;
         if let Err(e) = store.note(s.write_loops(&super::loops::with_ids(loops, &written))) {
             for &id in &written {
                 let _ = s.remove(id);
             }
+            s.settle(&written);
             return Err(e);
         }
         // No await between the inserts and this: the publish is queued with them.
@@ -69,9 +76,7 @@ impl Operations for Sled {
             Ok(()) => {
                 // Searchable once durable: a match never points at a frame that could still vanish.
                 let mut index = session.index.write();
-                for (f, &id) in prepared.iter().zip(&ids) {
-                    index.push(id, &f.robot_id, f.timestamp, f.pose, &f.descriptor);
-                }
+                session.publish(&mut index, &prepared, &ids, &sizes);
                 drop(index);
                 let mut keys = session.keys.lock();
                 for (f, &id) in prepared.iter().zip(&ids) {
@@ -83,7 +88,6 @@ impl Operations for Sled {
                 // The key goes once its frame is searchable (here) or known not stored (below),
                 // even when the request waiting for it was dropped.
                 drop(key);
-                session.bytes.fetch_add(added_bytes, Relaxed);
             }
             Err(_) => {
                 // Not acknowledged: take the frames back so they do not reappear after a restart
@@ -91,6 +95,7 @@ impl Operations for Sled {
                 for &id in &ids {
                     let _ = session.remove(id);
                 }
+                session.settle(&ids);
                 drop(key);
             }
         });

@@ -113,6 +113,7 @@ pub(super) fn spawn(sessions: Weak<Sessions>) {
         let mut added = false;
         for s in list {
             save_if_due(&s);
+            super::kept::checkpoint_if_due(&s);
             let pending = s.index.read().pending(ROWS_PER_TURN);
             if let Some(p) = pending {
                 added = true;

@@ -8,6 +8,7 @@ pub mod durability;
 mod embedded;
 pub mod health;
 mod indexer;
+mod kept;
 pub mod keys;
 pub mod loops;
 mod operations;
@@ -131,6 +132,22 @@ pub struct Session {
     graph_file: parking_lot::Mutex<indexer::GraphFile>,
     /// Idempotency keys of its frames, and of writes in flight (`keys.rs`).
     keys: parking_lot::Mutex<keys::Keys>,
+    /// Its rows and frame records kept across restarts, and the frame ids in flight
+    /// (`kept.rs`); None in a cluster's cache and with rows in memory. Locked after `index`.
+    kept: parking_lot::Mutex<Option<kept::Kept>>,
+    /// Frames taken from the kept files when it loaded (0: all read from sled).
+    restored: usize,
+}
+
+/// Whether a loading session's rows are kept in files across restarts (`kept.rs`).
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(super) enum Keep {
+    /// No (a cluster node's cache: the log is the truth, and the cache is dropped at start).
+    No,
+    /// In new files (a new session).
+    Fresh,
+    /// From the files the last run kept, where they check out (a store opening).
+    Restore,
 }
 
 pub struct Store {
@@ -197,10 +214,18 @@ pub struct SearchConfig {
     /// Each session's rows in a file under `<data-dir>/rows/` mapped into memory, at most this
     /// many bytes of them kept in the process (`index/rows.rs`); None: rows in memory.
     pub rows_resident: Option<usize>,
+    /// With mapped rows, a session's rows and frame records are kept across restarts and
+    /// checkpointed each time it has grown by this many frames (and at most a minute after it
+    /// last grew), so a restart reads only the frames after the checkpoint from sled
+    /// (`kept.rs`).
+    pub checkpoint_frames: usize,
 }
 
 /// The folder (under the data directory) sessions' row files are made in.
 const ROWS_DIR: &str = "rows";
+
+/// The default of [`SearchConfig::checkpoint_frames`].
+pub const CHECKPOINT_FRAMES: usize = 50_000;
 
 /// The default of [`SearchConfig::rows_resident`]: 1 GiB per session.
 pub const ROWS_RESIDENT: usize = 1 << 30;
@@ -213,6 +238,7 @@ impl Default for SearchConfig {
             max_concurrent: cores(),
             graph: Default::default(),
             rows_resident: Some(ROWS_RESIDENT),
+            checkpoint_frames: CHECKPOINT_FRAMES,
         }
     }
 }
@@ -261,13 +287,14 @@ impl Store {
         for entry in disk.sessions.iter() {
             let (_, v) = entry?;
             let meta: SessionMeta = serde_json::from_slice(&v).map_err(|e| StoreError::Storage(e.to_string()))?;
-            let session = Session::load(&disk.db, meta, search, &graphs, &rows)?;
+            let session = Session::load(&disk.db, meta, search, &graphs, &rows, Keep::Restore)?;
             let index = session.index.read();
             index.upload();
             frames += index.len();
             drop(index);
             sessions.insert(session.meta.id.clone(), Arc::new(session));
         }
+        kept::remove_others(&rows, &sessions.keys().cloned().collect());
         tracing::info!(
             sessions = sessions.len(),
             frames,
@@ -328,6 +355,11 @@ impl Store {
         let Some(removed) = removed else { return Ok(false) };
         self.drop_trees(id, &removed)?;
         indexer::remove_saved(&removed);
+        // Retired first (under its lock): a checkpoint under way does not write its file again.
+        if let Some(k) = removed.kept.lock().as_mut() {
+            k.retire();
+        }
+        kept::remove(&self.rows_dir(), id);
         Ok(true)
     }
 
@@ -374,15 +406,31 @@ impl Store {
         dispatch!(async self, add_frames(self, s, prepared, loops, held))
     }
 
-    /// Inserts the frames (all or none) and returns their ids and bytes; not yet durable.
-    fn write_frames(s: &Session, prepared: &[NewFrame]) -> Result<(Vec<u64>, u64), StoreError> {
+    /// Inserts the frames (all or none) and returns their ids and bytes on disk; not yet
+    /// durable. Their ids stay claimed (`Session::claim`) until the caller settles them; on an
+    /// error they are settled here.
+    fn write_frames(s: &Session, prepared: &[NewFrame]) -> Result<(Vec<u64>, Vec<u64>), StoreError> {
+        let mut claimed = Vec::with_capacity(prepared.len());
+        let written = Self::write_claimed(s, prepared, &mut claimed);
+        if written.is_err() {
+            s.settle(&claimed);
+        }
+        written
+    }
+
+    fn write_claimed(
+        s: &Session,
+        prepared: &[NewFrame],
+        claimed: &mut Vec<u64>,
+    ) -> Result<(Vec<u64>, Vec<u64>), StoreError> {
         let trees = s.trees()?;
         let mut written = Vec::with_capacity(prepared.len());
-        let mut added_bytes = 0u64;
+        let mut sizes = Vec::with_capacity(prepared.len());
         for f in prepared {
             let value = encode_frame(&f.header(), &f.descriptor, s.meta.storage);
             let id = match f.frame_id {
                 Some(id) => {
+                    claimed.push(s.claim(Some(id)));
                     if !insert_new(&trees.frames, id, &value)? {
                         // All or nothing: take back what this call already wrote.
                         for &done in &written {
@@ -396,7 +444,8 @@ impl Store {
                     id
                 }
                 None => loop {
-                    let id = s.next_id.fetch_add(1, Relaxed);
+                    let id = s.claim(None);
+                    claimed.push(id);
                     if insert_new(&trees.frames, id, &value)? {
                         break id;
                     }
@@ -408,10 +457,10 @@ impl Store {
             if let Some(thumbnail) = &f.thumbnail {
                 trees.thumbs.insert(frame_key(id), thumbnail.as_slice())?;
             }
-            added_bytes += (8 + value.len()) as u64;
+            sizes.push((8 + value.len()) as u64);
             written.push(id);
         }
-        Ok((written, added_bytes))
+        Ok((written, sizes))
     }
 
     /// Ranked matches for a descriptor (normalised here), searched on a blocking thread of the

@@ -87,6 +87,40 @@ impl Session {
         self.index.write().set_votes(frame_id, votes);
     }
 
+    /// Claims a frame id before it is written to sled (`kept.rs`): a client's id as given,
+    /// else the next free one.
+    pub(super) fn claim(&self, client: Option<u64>) -> u64 {
+        match self.kept.lock().as_mut() {
+            Some(k) => k.claim(client, &self.next_id),
+            None => client.unwrap_or_else(|| self.next_id.fetch_add(1, Relaxed)),
+        }
+    }
+
+    /// Claimed ids that are searchable now, or were taken back.
+    pub(super) fn settle(&self, ids: &[u64]) {
+        if let Some(k) = self.kept.lock().as_mut() {
+            k.settled(ids.iter().copied());
+        }
+    }
+
+    /// Makes `frames` searchable (their rows appended to the index, their records kept) and
+    /// counts their bytes on disk; the caller holds the index's lock.
+    pub(super) fn publish(&self, index: &mut SessionIndex, frames: &[NewFrame], ids: &[u64], sizes: &[u64]) {
+        let mut kept = self.kept.lock();
+        for ((f, &id), &size) in frames.iter().zip(ids).zip(sizes) {
+            index.push(id, &f.robot_id, f.timestamp, f.pose, &f.descriptor);
+            if let Some(k) = kept.as_mut() {
+                let key = f.idempotency_key.clone();
+                let robot = f.robot_id.clone();
+                k.append(&kept::Record { id, bytes: size as u32, robot, timestamp: f.timestamp, pose: f.pose, key });
+            }
+            self.bytes.fetch_add(size, Relaxed);
+        }
+        if let Some(k) = kept.as_mut() {
+            k.settled(ids.iter().copied());
+        }
+    }
+
     /// Takes a frame that was never acknowledged back off disk, with the loops kept for it.
     pub(super) fn remove(&self, frame_id: u64) -> Result<(), StoreError> {
         let trees = self.trees()?;
@@ -117,32 +151,66 @@ impl Session {
     }
 
     /// The session's rows from sled, and its saved approximate index from `graphs` if that
-    /// matches them (else it is rebuilt in the background).
+    /// matches them (else it is rebuilt in the background). `keep`: whether its rows are kept in
+    /// files across restarts (`kept.rs`; with mapped rows only), and whether to take them from
+    /// the files kept by the last run.
     pub(super) fn load(
         db: &sled::Db,
         meta: SessionMeta,
         search: SearchConfig,
         graphs: &Path,
         rows: &Path,
+        keep: Keep,
     ) -> Result<Self, StoreError> {
         let trees = Trees::open(db, &meta.id)?;
+        let start = match keep {
+            Keep::No => kept::Start::None,
+            Keep::Fresh | Keep::Restore => kept::start(rows, &meta, &search, &trees, keep == Keep::Restore),
+        };
         let mapping = search.rows_resident.map(|resident| crate::index::rows::Mapping { dir: rows, resident });
-        let mut index = SessionIndex::with_rows(meta.dim, meta.storage, mapping);
+        let mut keys = super::keys::Keys::default();
+        let (mut index, mut kept, mut bytes, tail_from) = match start {
+            kept::Start::None => (SessionIndex::with_rows(meta.dim, meta.storage, mapping), None, 0, 0),
+            kept::Start::Fresh(kept, file) => {
+                let resident = search.rows_resident.unwrap_or(ROWS_RESIDENT);
+                let index = SessionIndex::with_file(meta.dim, meta.storage, file, resident, std::iter::empty())
+                    .map_err(|e| StoreError::Storage(format!("rows file of session '{}': {e}", meta.id)))?;
+                (index, Some(*kept), 0, 0)
+            }
+            kept::Start::Restored(r) => {
+                let r = *r;
+                for rec in r.records {
+                    if let Some(key) = rec.key {
+                        keys.stored(key, rec.id);
+                    }
+                }
+                (r.index, Some(r.kept), r.bytes_on_disk, r.tail_from)
+            }
+        };
+        let restored = index.len();
         if let Some(device) = search.device {
             index.search_on(device, search.device_min_rows);
         }
         index.set_index(meta.index, search.graph);
-        let mut bytes = 0u64;
-        let mut keys = super::keys::Keys::default();
-        for entry in trees.frames.iter() {
+        // Every frame, or (restored) those from `tail_from` on that the kept rows do not cover.
+        for entry in trees.frames.range(frame_key(tail_from)..) {
             let (k, v) = entry?;
             let id = key_frame(&k).ok_or_else(|| StoreError::Storage("bad frame key".into()))?;
+            if index.contains(id) {
+                continue;
+            }
             let (h, d) = decode_frame(&v).map_err(StoreError::Storage)?;
-            index.push(id, &h.robot_id, h.timestamp, h.pose, &d);
-            if let Some(key) = h.idempotency_key {
+            let FrameHeader { robot_id, timestamp, pose, idempotency_key, .. } = h;
+            index.push(id, &robot_id, timestamp, pose, &d);
+            let size = (k.len() + v.len()) as u64;
+            if let Some(kept) = &mut kept {
+                let key = idempotency_key.clone();
+                kept.append(&kept::Record { id, bytes: size as u32, robot: robot_id, timestamp, pose, key });
+            }
+            if let Some(key) = idempotency_key {
                 keys.stored(key, id);
             }
-            bytes += (k.len() + v.len()) as u64;
+            bytes += size;
         }
         let next = index.max_frame_id().map_or(0, |m| m.saturating_add(1));
         let graph_file = indexer::open_saved(&mut index, graphs, &meta.id);
@@ -158,7 +226,15 @@ impl Session {
             used: AtomicU64::new(owners::now_ms()),
             graph_file: parking_lot::Mutex::new(graph_file),
             keys: parking_lot::Mutex::new(keys),
+            kept: parking_lot::Mutex::new(kept),
+            restored,
         })
+    }
+
+    /// Frames taken from the files kept by the last run when the session loaded (`kept.rs`;
+    /// 0: every frame was read from the database).
+    pub fn restored_frames(&self) -> usize {
+        self.restored
     }
 
     /// Searches of this session answered on the search device (0 when searching on the host).

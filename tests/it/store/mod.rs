@@ -1,4 +1,5 @@
 mod graph;
+mod kept;
 mod rows;
 mod search_pool;
 mod sessions;
