@@ -98,7 +98,8 @@ fn main() -> anyhow::Result<()> {
                 default_query: Default::default(),
                 camera: None,
                 thumbnails: false,
-                index: Default::default(),
+                // What a session this large uses (`auto` switches at 200,000 frames).
+                index: loopd::index::graph::IndexKind::Approximate,
             };
             store.create_session(Some(ID.into()), new).await?;
             let s = store.session(ID)?;

@@ -146,6 +146,11 @@ pub struct Graph {
     context_count: usize,
     dims: usize,
     covered: AtomicUsize,
+    /// usearch's `memory_usage` as of the last addition. It walks the nodes, and a node being
+    /// added meanwhile is not there yet: reading it beside `add` crashed (SIGSEGV,
+    /// `store::graph::queries_search_a_graph_while_it_grows_past_several_reservations`), so only
+    /// the adding thread reads it, after its additions.
+    memory: AtomicUsize,
     params: GraphParams,
 }
 
@@ -167,12 +172,14 @@ impl Graph {
         index
             .reserve_capacity_and_threads(1024, context_count)
             .map_err(|e| format!("reserving the approximate index: {e}"))?;
+        let memory = AtomicUsize::new(index.memory_usage());
         Ok(Self {
             index: RwLock::new(index),
             contexts: Contexts::new(context_count),
             context_count,
             dims,
             covered: AtomicUsize::new(0),
+            memory,
             params,
         })
     }
@@ -197,8 +204,9 @@ impl Graph {
         self.covered.load(Ordering::Acquire)
     }
 
+    /// Bytes the graph holds, as of its last addition (safe beside additions and searches).
     pub fn memory_bytes(&self) -> usize {
-        self.index.read().memory_usage()
+        self.memory.load(Ordering::Relaxed)
     }
 
     /// The graph's view of a unit row: its first `dims` values, renormalised.
@@ -254,6 +262,8 @@ impl Graph {
                 });
             }
         });
+        // Every addition has returned, and only this thread adds: the nodes hold still.
+        self.memory.store(index.memory_usage(), Ordering::Relaxed);
         if let Some(e) = failed.into_inner().unwrap_or_else(|p| p.into_inner()) {
             return Err(format!("adding to the approximate index: {e}"));
         }
@@ -375,6 +385,7 @@ impl Graph {
             .reserve_capacity_and_threads(index.capacity().max(saved.rows).max(1024), context_count)
             .map_err(|e| format!("reserving the approximate index: {e}"))?;
         index.change_expansion_search(params.expansion_search);
+        graph.memory.store(index.memory_usage(), Ordering::Relaxed);
         graph.covered.store(saved.rows, Ordering::Release);
         Ok(graph)
     }

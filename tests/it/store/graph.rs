@@ -61,6 +61,14 @@ fn queries_search_a_graph_while_it_grows_past_several_reservations() {
                 }
             });
         }
+        // Sessions' figures (`GET /v1/sessions/{id}`, /metrics) read the graph's memory meanwhile.
+        let (graph_, done_, reads) = (&graph, &done, &searches);
+        s.spawn(move || {
+            while !done_.load(Ordering::Acquire) {
+                assert!(graph_.memory_bytes() > 0);
+                reads.fetch_add(1, Ordering::Relaxed);
+            }
+        });
         // The indexer's part: rows in order, 200 at a time, so capacity grows 1024 -> 1536 -> ...
         for start in (0..rows.len()).step_by(200) {
             let end = (start + 200).min(rows.len());

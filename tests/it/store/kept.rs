@@ -15,7 +15,8 @@ fn config(checkpoint_frames: usize) -> SearchConfig {
     SearchConfig { checkpoint_frames, ..Default::default() }
 }
 
-fn frame(rows: &[Vec<f32>], i: usize) -> NewFrame {
+/// Nordland image `i` as a frame: summer and winter are two robots.
+pub(super) fn frame(rows: &[Vec<f32>], i: usize) -> NewFrame {
     NewFrame {
         frame_id: Some(i as u64),
         robot_id: if i < 2400 { "summer".into() } else { "winter".into() },
@@ -85,16 +86,28 @@ async fn filled(dir: &Path, rows: &[Vec<f32>], dim: usize) {
     }
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn a_reopened_store_takes_its_kept_rows_and_reads_only_the_frames_after_the_checkpoint() {
+/// The Nordland rows, and a folder holding a checkpointed store of `picks()` of them.
+async fn a_checkpointed_store() -> (Vec<Vec<f32>>, tempfile::TempDir) {
     let (rows, dim) = nordland_rows();
     let dir = tempfile::tempdir().unwrap();
     filled(dir.path(), &rows, dim).await;
+    (rows, dir)
+}
+
+/// The store in `dir` opened again, and its session.
+fn reopened(dir: &Path, checkpoint_frames: usize) -> (Store, std::sync::Arc<loopd::store::Session>) {
+    let store = Store::open_with(dir, config(checkpoint_frames)).unwrap();
+    let s = store.session(ID).unwrap();
+    (store, s)
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_reopened_store_takes_its_kept_rows_and_reads_only_the_frames_after_the_checkpoint() {
+    let (rows, dir) = a_checkpointed_store().await;
     let n = picks().len();
 
     // Restored from the kept files: the same answers, frames and bytes as a read from sled.
-    let store = Store::open_with(dir.path(), config(1_000_000)).unwrap();
-    let s = store.session(ID).unwrap();
+    let (store, s) = reopened(dir.path(), 1_000_000);
     assert_eq!(s.restored_frames(), n);
     let first = answers(&store, &rows);
     assert_eq!(first.1, n);
@@ -111,8 +124,7 @@ async fn a_reopened_store_takes_its_kept_rows_and_reads_only_the_frames_after_th
     drop((s, store));
     assert_eq!(checkpointed(dir.path()), n, "no checkpoint of the tail");
 
-    let store = Store::open_with(dir.path(), config(1_000_000)).unwrap();
-    let s = store.session(ID).unwrap();
+    let (store, s) = reopened(dir.path(), 1_000_000);
     assert_eq!(s.restored_frames(), n, "the checkpoint's frames from the files");
     assert_eq!(s.info().frames, n + tail.len(), "and the tail from sled");
     for &id in &ids {
@@ -142,9 +154,7 @@ async fn a_reopened_store_takes_its_kept_rows_and_reads_only_the_frames_after_th
 
 #[tokio::test(flavor = "multi_thread")]
 async fn kept_rows_that_do_not_check_out_are_read_again_from_sled() {
-    let (rows, dim) = nordland_rows();
-    let dir = tempfile::tempdir().unwrap();
-    filled(dir.path(), &rows, dim).await;
+    let (rows, dir) = a_checkpointed_store().await;
     let n = picks().len();
     let good = {
         let store = Store::open_with(dir.path(), config(1)).unwrap();
@@ -168,7 +178,7 @@ async fn kept_rows_that_do_not_check_out_are_read_again_from_sled() {
             Box::new(|| {
                 let f =
                     std::fs::OpenOptions::new().write(true).open(dir.path().join(format!("rows/{ID}.rows"))).unwrap();
-                f.set_len((n as u64 - 1) * dim as u64 * 2).unwrap();
+                f.set_len((n as u64 - 1) * rows[0].len() as u64 * 2).unwrap();
             }),
         ),
         (
@@ -199,17 +209,13 @@ async fn kept_rows_that_do_not_check_out_are_read_again_from_sled() {
 /// sled in full. Without that the frame would be stored, acknowledged and missing after a restart.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_frame_written_out_of_order_removes_the_checkpoint_until_the_next() {
-    let (rows, dim) = nordland_rows();
-    let dir = tempfile::tempdir().unwrap();
-    filled(dir.path(), &rows, dim).await;
+    let (rows, dir) = a_checkpointed_store().await;
     let n = picks().len();
-    let store = Store::open_with(dir.path(), config(1_000_000)).unwrap();
-    let s = store.session(ID).unwrap();
+    let (store, s) = reopened(dir.path(), 1_000_000);
     assert_eq!(s.restored_frames(), n);
     store.add_frames(&s, vec![frame(&rows, 3)]).await.unwrap();
     drop((s, store));
-    let store = Store::open_with(dir.path(), config(1_000_000)).unwrap();
-    let s = store.session(ID).unwrap();
+    let (store, s) = reopened(dir.path(), 1_000_000);
     assert_eq!(s.info().frames, n + 1, "every acknowledged frame is back after the restart");
     assert_eq!(s.frame(3).map(|f| f.0.timestamp).ok(), Some(3.0), "the out-of-order frame is back");
     assert_eq!(s.restored_frames(), 0, "read from sled in full: the checkpoint was removed");

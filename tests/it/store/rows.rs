@@ -121,20 +121,7 @@ async fn a_store_keeps_its_sessions_rows_mapped_and_rebuilds_them_when_reopened(
             index: Default::default(),
         };
         store.create_session(Some("nordland".into()), new).await.unwrap();
-        let frames: Vec<NewFrame> = picks
-            .iter()
-            .map(|&i| NewFrame {
-                frame_id: Some(i as u64),
-                robot_id: if i < 2400 { "summer".into() } else { "winter".into() },
-                timestamp: i as f64,
-                pose: None,
-                metadata: None,
-                descriptor: rows[i].clone(),
-                features: None,
-                thumbnail: None,
-                idempotency_key: None,
-            })
-            .collect();
+        let frames: Vec<NewFrame> = picks.iter().map(|&i| super::kept::frame(&rows, i)).collect();
         store.add_frames(&store.session("nordland").unwrap(), frames).await.unwrap();
         let info = store.session("nordland").unwrap().info();
         assert_eq!(info.frames, picks.len());
