@@ -215,7 +215,7 @@ async fn a_frame_written_out_of_order_removes_the_checkpoint_until_the_next() {
     assert_eq!(s.restored_frames(), n);
     store.add_frames(&s, vec![frame(&rows, 3)]).await.unwrap();
     drop((s, store));
-    let (store, s) = reopened(dir.path(), 1_000_000);
+    let (_store, s) = reopened(dir.path(), 1_000_000);
     assert_eq!(s.info().frames, n + 1, "every acknowledged frame is back after the restart");
     assert_eq!(s.frame(3).map(|f| f.0.timestamp).ok(), Some(3.0), "the out-of-order frame is back");
     assert_eq!(s.restored_frames(), 0, "read from sled in full: the checkpoint was removed");
