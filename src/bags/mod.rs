@@ -62,6 +62,8 @@ pub struct Selection {
     pub pose_topic: Option<String>,
     /// The camera's registered depth images (16UC1 mm or 32FC1 m), nearest in stamp.
     pub depth_topic: Option<String>,
+    /// The right images of a stereo pair (raw or compressed), nearest in stamp.
+    pub right_topic: Option<String>,
     /// Instead of a pose topic: the camera frame's pose in this frame from `/tf` and
     /// `/tf_static` (with `camera_frame`).
     pub odom_frame: Option<String>,
@@ -76,6 +78,7 @@ impl Default for Selection {
             min_dt: 0.0,
             pose_topic: None,
             depth_topic: None,
+            right_topic: None,
             odom_frame: None,
             camera_frame: None,
         }
@@ -101,6 +104,9 @@ pub struct BagFrame {
     pub pose: Option<crate::index::query::Pose>,
     /// From the depth topic, when asked for and one is within [`poses::MAX_DEPTH_DT_S`].
     pub depth: Option<crate::verify::depth::DepthImage>,
+    /// From the right topic (JPEG or PNG as [`BagFrame::image`]), when asked for and one is within
+    /// [`poses::MAX_DEPTH_DT_S`].
+    pub right: Option<Vec<u8>>,
 }
 
 /// The robot a topic belongs to: the first name of a topic three or more names deep.
@@ -156,7 +162,9 @@ fn listing(topics: &[TopicInfo]) -> String {
 /// The topics to read: those asked for, which must be image topics of the bag, or its only one.
 fn chosen(sel: &Selection, topics: &[TopicInfo]) -> Result<Vec<String>, BagError> {
     check_pose_and_depth(sel, topics)?;
-    let images: Vec<&TopicInfo> = topics.iter().filter(|t| t.image).collect();
+    // The right images of a stereo pair are not frames of their own.
+    let images: Vec<&TopicInfo> =
+        topics.iter().filter(|t| t.image && Some(&t.topic) != sel.right_topic.as_ref()).collect();
     if sel.topics.is_empty() {
         return match images.as_slice() {
             [one] => Ok(vec![one.topic.clone()]),
@@ -200,6 +208,10 @@ fn check_pose_and_depth(sel: &Selection, topics: &[TopicInfo]) -> Result<(), Bag
         &|t| poses::PoseKind::of(t).is_some(),
     )?;
     need(&sel.depth_topic, "a depth image (sensor_msgs/Image)", &|t| ImageKind::of(t) == Some(ImageKind::Raw))?;
+    need(&sel.right_topic, "a right image (sensor_msgs/Image or CompressedImage)", &|t| ImageKind::of(t).is_some())?;
+    if sel.right_topic.is_some() && sel.depth_topic.is_some() {
+        return Err(BagError::Topics("a depth topic or a right (stereo) topic, not both".into()));
+    }
     match (&sel.odom_frame, &sel.camera_frame, &sel.pose_topic) {
         (None, None, _) => {}
         (Some(_), Some(_), None) => {
@@ -239,6 +251,7 @@ pub fn frames(parts: &[&[u8]], sel: &Selection, limits: &Limits) -> Result<Vec<B
     // Each depth message's stamp, by its place in the topic: decoded in a second pass, only those
     // nearest a frame.
     let mut depth_stamps: Vec<f64> = Vec::new();
+    let mut right_stamps: Vec<f64> = Vec::new();
     each(parts, limits, &mut |topic, tp, wire, time, bytes| {
         if sel.pose_topic.as_deref() == Some(topic) {
             let index = track.len();
@@ -263,6 +276,12 @@ pub fn frames(parts: &[&[u8]], sel: &Selection, limits: &Limits) -> Result<Vec<B
             let m = msgs::raw_image(wire.ok_or_else(|| bad("not CDR".into()))?, bytes).map_err(bad)?;
             depth_stamps.push(if m.stamp > 0.0 { m.stamp } else { time as f64 * 1e-9 });
         }
+        if sel.right_topic.as_deref() == Some(topic) {
+            let index = right_stamps.len();
+            let bad = |why: String| BagError::Message { topic: topic.into(), index, why };
+            let (stamp, _) = image_message(tp, wire, bytes).map_err(bad)?;
+            right_stamps.push(if stamp > 0.0 { stamp } else { time as f64 * 1e-9 });
+        }
         let Some(st) = state.get_mut(topic) else { return Ok(()) };
         let index = st.seen;
         st.seen += 1;
@@ -270,18 +289,7 @@ pub fn frames(parts: &[&[u8]], sel: &Selection, limits: &Limits) -> Result<Vec<B
             return Ok(());
         }
         let bad = |why: String| BagError::Message { topic: topic.into(), index, why };
-        let wire = wire.ok_or_else(|| bad("not CDR: rosbag2 records CDR".into()))?;
-        let kind = ImageKind::of(tp).ok_or_else(|| bad(format!("{tp} is not an image type")))?;
-        let (stamp, pixels) = match kind {
-            ImageKind::Raw => {
-                let m = msgs::raw_image(wire, bytes).map_err(bad)?;
-                (m.stamp, Pixels::Raw(m))
-            }
-            ImageKind::Compressed => {
-                let m = msgs::compressed_image(wire, bytes).map_err(bad)?;
-                (m.stamp, Pixels::Encoded(m.data))
-            }
-        };
+        let (stamp, pixels) = image_message(tp, wire, bytes).map_err(bad)?;
         let stamp = if stamp > 0.0 { stamp } else { time as f64 * 1e-9 };
         if st.last.is_some_and(|last| stamp - last < sel.min_dt) {
             return Ok(());
@@ -290,12 +298,10 @@ pub fn frames(parts: &[&[u8]], sel: &Selection, limits: &Limits) -> Result<Vec<B
         if out.len() >= limits.max_frames {
             return Err(BagError::TooManyFrames { max: limits.max_frames });
         }
-        let image = match pixels {
-            Pixels::Raw(raw) => pixels::to_png(&raw).map_err(bad)?,
-            Pixels::Encoded(data) => data.to_vec(),
-        };
+        let image = pixels.bytes().map_err(bad)?;
+        let robot_id = robot_of(topic);
         let frame =
-            BagFrame { topic: topic.into(), index, stamp, robot_id: robot_of(topic), image, pose: None, depth: None };
+            BagFrame { topic: topic.into(), index, stamp, robot_id, image, pose: None, depth: None, right: None };
         out.push((time, frame));
         Ok(())
     })?;
@@ -311,19 +317,57 @@ pub fn frames(parts: &[&[u8]], sel: &Selection, limits: &Limits) -> Result<Vec<B
         };
     }
     if let Some(depth_topic) = &sel.depth_topic {
-        attach_depth(parts, limits, depth_topic, &depth_stamps, &mut out)?;
+        attach_nearest(parts, limits, depth_topic, &depth_stamps, &mut out, &mut |f, _, wire, bytes| {
+            f.depth = poses::depth_message(wire.ok_or("not CDR")?, bytes)?;
+            Ok(())
+        })?;
+    }
+    if let Some(right_topic) = &sel.right_topic {
+        attach_nearest(parts, limits, right_topic, &right_stamps, &mut out, &mut |f, tp, wire, bytes| {
+            f.right = Some(image_message(tp, wire, bytes)?.1.bytes()?);
+            Ok(())
+        })?;
     }
     Ok(out)
 }
 
-/// Gives each frame the depth image nearest its stamp (within [`poses::MAX_DEPTH_DT_S`]),
+/// A raw or compressed image message: its header stamp and pixels.
+fn image_message<'a>(tp: &str, wire: Option<Wire>, bytes: &'a [u8]) -> Result<(f64, Pixels<'a>), String> {
+    let wire = wire.ok_or("not CDR: rosbag2 records CDR")?;
+    match ImageKind::of(tp).ok_or_else(|| format!("{tp} is not an image type"))? {
+        ImageKind::Raw => {
+            let m = msgs::raw_image(wire, bytes)?;
+            Ok((m.stamp, Pixels::Raw(m)))
+        }
+        ImageKind::Compressed => {
+            let m = msgs::compressed_image(wire, bytes)?;
+            Ok((m.stamp, Pixels::Encoded(m.data)))
+        }
+    }
+}
+
+impl Pixels<'_> {
+    /// A lossless PNG of raw pixels; JPEG or PNG bytes as recorded.
+    fn bytes(self) -> Result<Vec<u8>, String> {
+        match self {
+            Pixels::Raw(raw) => pixels::to_png(&raw),
+            Pixels::Encoded(data) => Ok(data.to_vec()),
+        }
+    }
+}
+
+/// What a message of a second pass gives the frames that take it: (frame, type, wire, bytes).
+type Attach<'a> = dyn FnMut(&mut BagFrame, &str, Option<Wire>, &[u8]) -> Result<(), String> + 'a;
+
+/// Gives each frame the message of `topic` nearest its stamp (within [`poses::MAX_DEPTH_DT_S`]),
 /// decoding only those in a second pass over the bag.
-fn attach_depth(
+fn attach_nearest(
     parts: &[&[u8]],
     limits: &Limits,
     topic: &str,
     stamps: &[f64],
     frames: &mut [BagFrame],
+    attach: &mut Attach,
 ) -> Result<(), BagError> {
     let mut order: Vec<usize> = (0..stamps.len()).collect();
     order.sort_by(|&a, &b| stamps[a].total_cmp(&stamps[b]));
@@ -344,7 +388,7 @@ fn attach_depth(
         return Ok(());
     }
     let mut index = 0;
-    each(parts, limits, &mut |t, _, wire, _, bytes| {
+    each(parts, limits, &mut |t, tp, wire, _, bytes| {
         if t != topic {
             return Ok(());
         }
@@ -352,9 +396,8 @@ fn attach_depth(
         index += 1;
         let Some(takers) = wanted.get(&i) else { return Ok(()) };
         let bad = |why: String| BagError::Message { topic: topic.into(), index: i, why };
-        let depth = poses::depth_message(wire.ok_or_else(|| bad("not CDR".into()))?, bytes).map_err(bad)?;
         for &fi in takers {
-            frames[fi].depth = depth.clone();
+            attach(&mut frames[fi], tp, wire, bytes).map_err(bad)?;
         }
         Ok(())
     })

@@ -42,8 +42,13 @@ pub struct IngestArgs {
     camera_frame: Option<String>,
     /// The camera's registered depth images (sensor_msgs/Image 16UC1 mm or 32FC1 m), nearest in
     /// stamp within 50 ms: verified loops get metric poses (needs --camera).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "right_topic")]
     depth_topic: Option<String>,
+    /// The right images of a stereo pair (sensor_msgs/Image or CompressedImage), nearest in stamp
+    /// within 50 ms: verified loops get metric poses (needs a session whose camera has stereo,
+    /// e.g. created with the Python client's create_session(stereo=...)).
+    #[arg(long)]
+    right_topic: Option<String>,
     /// Create the session with this camera: fx,fy,cx,cy[,k1,k2,p1,p2,k3] in pixels.
     #[arg(long, value_delimiter = ',')]
     camera: Option<Vec<f64>>,
@@ -164,7 +169,8 @@ fn upload(remote: &Http, a: &IngestArgs, session: &str, files: &[PathBuf]) -> Re
         form = form.text("topic", a.topic.join(","));
     }
     let frames = [("odom_frame", &a.odom_frame), ("camera_frame", &a.camera_frame)];
-    for (k, v) in [("pose_topic", &a.pose_topic), ("depth_topic", &a.depth_topic)].into_iter().chain(frames) {
+    let topics = [("pose_topic", &a.pose_topic), ("depth_topic", &a.depth_topic), ("right_topic", &a.right_topic)];
+    for (k, v) in topics.into_iter().chain(frames) {
         if let Some(v) = v {
             form = form.text(k, v.clone());
         }

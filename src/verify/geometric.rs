@@ -32,6 +32,19 @@ const MAX_POINTS: usize = 20_000;
 pub const MIN_PNP_INLIERS: usize = 30;
 /// PnP RANSAC reprojection threshold (pixels).
 const PNP_THRESHOLD_PX: f32 = 4.0;
+
+/// The metric pose's noise model (its covariance, `pnp_covariance`): a keypoint's position is
+/// good to this many pixels (one standard deviation) ...
+const PIXEL_SIGMA_PX: f64 = 1.0;
+/// ... and its depth to this much times its depth squared (metres; structured light and stereo
+/// both lose depth precision with the square of the distance; 2.5 mm at 1 m, 1 cm at 2 m).
+const DEPTH_SIGMA_PER_M: f64 = 0.0025;
+/// What neither accounts for (depth-to-colour registration, calibration, rolling shutter), added
+/// to every metric pose's covariance as a floor: one standard deviation per axis of translation
+/// (metres) and of rotation (degrees). Fitted on the tum-desk RGB-D loops (the per-axis RMS of
+/// their errors), judged on the EuRoC stereo loops (docs/verification.md).
+const FLOOR_SIGMA_M: f64 = 0.0136;
+const FLOOR_SIGMA_DEG: f64 = 0.22;
 /// Inlier matches kept for people to look at (the loop inspector draws them); enough to see
 /// where the views agree, small enough to keep with every loop.
 pub const MAX_SHOWN_INLIERS: usize = 100;
@@ -451,7 +464,11 @@ pub fn metric_pose(
             g[(i, j)] = (a[i] - b[i]) / (2.0 * h);
         }
     }
-    let cov = g * cov_p * g.transpose();
+    let mut cov = g * cov_p * g.transpose();
+    let (ft, fr) = (FLOOR_SIGMA_M.powi(2), FLOOR_SIGMA_DEG.to_radians().powi(2));
+    for (i, floor) in [ft, ft, ft, fr, fr, fr].into_iter().enumerate() {
+        cov[(i, i)] += floor;
+    }
     let cov = (cov + cov.transpose()) * 0.5;
     if cov.iter().any(|v| !v.is_finite()) {
         return Ok(None);
@@ -469,7 +486,11 @@ fn pnp_transform(p: &[f64; 6]) -> nalgebra::Isometry3<f64> {
     nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(p[3], p[4], p[5]), r)
 }
 
-/// σ²(JᵀJ)⁻¹ over (rvec, tvec) of the refined reprojection problem; None when it is singular.
+/// The covariance of (rvec, tvec) of the refined reprojection problem, (Σ Jᵢᵀ Wᵢ Jᵢ)⁻¹ scaled by
+/// the residuals' variance factor where that exceeds 1; None when it is singular. Each point's
+/// residual covariance Wᵢ⁻¹ is its pixel noise plus its depth noise carried into the image:
+/// σₚ²I + σ_z² (∂π/∂X · dX/dz)(∂π/∂X · dX/dz)ᵀ, where X = z·ray is the lifted point, ∂π/∂X is
+/// `projectPoints`' Jacobian in tvec times R (Rodrigues), and σ_z = `DEPTH_SIGMA_PER_M`·z².
 fn pnp_covariance(
     obj: &Vector<core::Point3f>,
     img: &Vector<Point2f>,
@@ -483,25 +504,37 @@ fn pnp_covariance(
     if jac.rows() as usize != 2 * n || (jac.cols() as usize) < 6 || n * 2 <= 6 {
         return Ok(None);
     }
-    let mut jtj = nalgebra::Matrix6::<f64>::zeros();
-    let mut sq = 0.0;
-    for i in 0..n {
-        let (pr, ob) = (projected.get(i)?, img.get(i)?);
-        sq += ((pr.x - ob.x) as f64).powi(2) + ((pr.y - ob.y) as f64).powi(2);
-        for row in [2 * i, 2 * i + 1] {
-            let mut jr = [0.0f64; 6];
-            for (c, v) in jr.iter_mut().enumerate() {
-                *v = *jac.at_2d::<f64>(row as i32, c as i32)?;
-            }
-            for a in 0..6 {
-                for b in 0..6 {
-                    jtj[(a, b)] += jr[a] * jr[b];
-                }
-            }
+    let mut rmat = Mat::default();
+    calib3d::rodrigues(rvec, &mut rmat, &mut core::no_array())?;
+    let mut r = Matrix3::<f64>::zeros();
+    for i in 0..3 {
+        for j in 0..3 {
+            r[(i, j)] = *rmat.at_2d::<f64>(i as i32, j as i32)?;
         }
     }
-    let sigma2 = sq / (2 * n - 6) as f64;
-    Ok(jtj.try_inverse().map(|inv| inv * sigma2))
+    let mut info = nalgebra::Matrix6::<f64>::zeros();
+    let mut chi2 = 0.0;
+    for i in 0..n {
+        let (pr, ob, x) = (projected.get(i)?, img.get(i)?, obj.get(i)?);
+        let mut j = nalgebra::Matrix2x6::<f64>::zeros();
+        for row in 0..2 {
+            for c in 0..6 {
+                j[(row, c)] = *jac.at_2d::<f64>((2 * i + row) as i32, c as i32)?;
+            }
+        }
+        // The depth's direction in the image: d(projection)/dz = J_t · R · ray.
+        let z = (x.z as f64).max(1e-6);
+        let ray = nalgebra::Vector3::new(x.x as f64 / z, x.y as f64 / z, 1.0);
+        let along = j.fixed_view::<2, 3>(0, 3) * (r * ray);
+        let sigma_z = DEPTH_SIGMA_PER_M * z * z;
+        let c = nalgebra::Matrix2::identity() * PIXEL_SIGMA_PX.powi(2) + along * along.transpose() * sigma_z.powi(2);
+        let Some(w) = c.try_inverse() else { return Ok(None) };
+        let e = nalgebra::Vector2::new((pr.x - ob.x) as f64, (pr.y - ob.y) as f64);
+        chi2 += (e.transpose() * w * e)[(0, 0)];
+        info += j.transpose() * w * j;
+    }
+    let factor = (chi2 / (2 * n - 6) as f64).max(1.0);
+    Ok(info.try_inverse().map(|cov| cov * factor))
 }
 
 fn count(mask: &[bool]) -> usize {

@@ -164,6 +164,9 @@ pub struct SequenceFields {
     /// Bags: the camera's registered depth images (sensor_msgs/Image 16UC1 mm or 32FC1 m),
     /// the nearest within 50 ms of each image: verified loops get metric poses.
     depth_topic: Option<String>,
+    /// Bags: the right images of a stereo pair (sensor_msgs/Image or CompressedImage), the nearest
+    /// within 50 ms of each image, for a session camera with stereo: verified loops get metric poses.
+    right_topic: Option<String>,
     /// Bags, instead of pose_topic: the frame the camera's pose is taken in from /tf and
     /// /tf_static (with camera_frame).
     odom_frame: Option<String>,

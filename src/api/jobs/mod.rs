@@ -246,6 +246,7 @@ async fn run(
     // it (owners.rs), and the job's frames go into it one by one.
     let held = service.store.session(&session).ok();
     let thumbnails = held.as_ref().is_some_and(|s| s.meta.thumbnails);
+    let camera = held.as_ref().and_then(|s| s.meta.camera);
     let limits = engine.info().limits;
     // The options every frame is queried with: the request's over the job's defaults over the
     // session's; the job's loops are the first candidates whose confidence reaches
@@ -277,12 +278,28 @@ async fn run(
                     match features {
                         true => {
                             let mut x = verifier
-                                .extract(f.image.clone(), limits, f.depth.is_some())
+                                .extract(f.image.clone(), limits, f.depth.is_some() || f.right.is_some())
                                 .await
                                 .map_err(crate::api::service::no_features)?;
                             // Depth of another size than the image: the frame goes without it.
                             if let Some(Err(e)) = f.depth.as_ref().map(|d| d.attach(&mut x)) {
                                 tracing::warn!(frame = %f.name, error = %e, "bag depth image not used");
+                            }
+                            // A stereo pair's right image: depth at the left keypoints, as over
+                            // the APIs; without a stereo camera or on a bad pair, none.
+                            if let Some(right) = &f.right {
+                                let rig = camera.as_ref().and_then(|c| c.stereo_rig(x.width, x.height));
+                                let attached = match rig {
+                                    None => Err("the session camera has no stereo".to_string()),
+                                    Some(rig) => match (rig, verifier.extract(right.clone(), limits, false).await) {
+                                        (Ok(rig), Ok(rf)) => rig.attach(&mut x, &rf).map_err(|e| e.to_string()),
+                                        (Err(e), _) => Err(e.to_string()),
+                                        (_, Err(e)) => Err(e.to_string()),
+                                    },
+                                };
+                                if let Err(e) = attached {
+                                    tracing::warn!(frame = %f.name, error = %e, "bag right image not used");
+                                }
                             }
                             Ok(x)
                         }

@@ -22,11 +22,13 @@ pub struct SeqFrame {
     pub pose: Option<crate::index::query::Pose>,
     /// From a bag's depth topic.
     pub depth: Option<crate::verify::depth::DepthImage>,
+    /// From a bag's right (stereo) topic: the right image's bytes.
+    pub right: Option<Bytes>,
 }
 
 impl SeqFrame {
     fn file(name: String, image: Bytes) -> Self {
-        Self { name, image, robot_id: None, timestamp: None, pose: None, depth: None }
+        Self { name, image, robot_id: None, timestamp: None, pose: None, depth: None, right: None }
     }
 }
 
@@ -88,6 +90,7 @@ fn bag_selection(fields: &mut HashMap<String, String>) -> Result<Selection, ApiE
     }
     sel.pose_topic = fields.remove("pose_topic").filter(|t| !t.trim().is_empty());
     sel.depth_topic = fields.remove("depth_topic").filter(|t| !t.trim().is_empty());
+    sel.right_topic = fields.remove("right_topic").filter(|t| !t.trim().is_empty());
     sel.odom_frame = fields.remove("odom_frame").filter(|t| !t.trim().is_empty());
     sel.camera_frame = fields.remove("camera_frame").filter(|t| !t.trim().is_empty());
     Ok(sel)
@@ -146,6 +149,7 @@ fn from_bag(parts: &[Bytes], sel: &Selection) -> Result<Vec<SeqFrame>, ApiError>
             timestamp: Some(f.stamp),
             pose: f.pose,
             depth: f.depth,
+            right: f.right.map(Bytes::from),
         })
         .collect())
 }
@@ -183,11 +187,13 @@ impl SequenceRequest {
             || selection.min_dt != 0.0
             || selection.pose_topic.is_some()
             || selection.depth_topic.is_some()
+            || selection.right_topic.is_some()
             || selection.odom_frame.is_some()
             || selection.camera_frame.is_some()
         {
             return Err(ApiError::InvalidArgument(
-                "topic, every, min_dt, pose_topic, depth_topic, odom_frame and camera_frame apply to bags only".into(),
+                "topic, every, min_dt, pose_topic, depth_topic, right_topic, odom_frame and camera_frame apply to bags only"
+                    .into(),
             ));
         }
         if frames.is_empty() {

@@ -140,6 +140,9 @@ fn rgbd_loops_get_metric_poses_close_to_the_ground_truth() {
     }
     eprintln!("{metric} metric poses, {covered} with the error inside the covariance's 68% region");
     assert!(metric >= 4, "only {metric} of 6 loops got a metric pose");
+    // The noise model and its floor (fitted on these pairs) cover most of their errors; with
+    // the residual variance alone none was (docs/verification.md).
+    assert!(covered >= 3, "only {covered} of {metric} errors inside the covariance's 68% region");
 }
 
 mod server {
