@@ -130,3 +130,22 @@ def corridor_truth():
         q, refs = line.split(",")
         truth[int(q)] = {int(r) for r in refs.split()}
     return truth
+
+
+def euroc_stereo():
+    """EuRoC's calibrated stereo camera from euroc-lcd/sensor{Left,Right}.yaml: the left camera
+    (fx, fy, cx, cy, k1, k2, p1, p2, k3) and `create_session`'s `stereo` (the right camera's pose
+    in the left's, its intrinsics and distortion)."""
+    import re
+    import numpy as np
+
+    def sensor(side):
+        text = (DATA / f"euroc-lcd/sensor{side}.yaml").read_text()
+        grab = lambda key: [float(v) for v in re.search(key + r"\s*\[([^\]]*)\]", text, re.S).group(1).split(",")]  # noqa: E731
+        return np.array(grab("data:")).reshape(4, 4), grab("intrinsics:"), grab("distortion_coefficients:") + [0.0]
+
+    (tl, kl, dl), (tr, kr, dr) = sensor("Left"), sensor("Right")
+    t = np.linalg.inv(tr) @ tl
+    stereo = {"rotation": t[:3, :3].ravel().tolist(), "translation": t[:3, 3].tolist(),
+              "right_intrinsics": kr, "right_distortion": dr}
+    return kl + dl, stereo

@@ -392,18 +392,9 @@ def test_a_stereo_bag_gives_metric_loops(server, key, tmp_path):
     stamped 1 ms after its left) into sessions created with the calibrated stereo camera through
     the client: with `loopd ingest --right-topic` the loops (1, 0) and (3, 2) get metric poses near
     the ground truth's 0.43 m and 0.32 m; the same bag without it gives none."""
-    import re
-    import numpy as np
+    from conftest import euroc_stereo
 
-    def sensor(side):
-        text = (DATA / f"euroc-lcd/sensor{side}.yaml").read_text()
-        grab = lambda key: [float(v) for v in re.search(key + r"\s*\[([^\]]*)\]", text, re.S).group(1).split(",")]  # noqa: E731
-        return np.array(grab("data:")).reshape(4, 4), grab("intrinsics:"), grab("distortion_coefficients:") + [0.0]
-
-    (tl, kl, dl), (tr, kr, dr) = sensor("Left"), sensor("Right")
-    t = np.linalg.inv(tr) @ tl
-    stereo = {"rotation": t[:3, :3].ravel().tolist(), "translation": t[:3, 3].tolist(),
-              "right_intrinsics": kr, "right_distortion": dr}
+    camera, stereo = euroc_stereo()
     ts = bagmaker.TS2
     msgs = []
     for i in range(4):
@@ -422,7 +413,7 @@ def test_a_stereo_bag_gives_metric_loops(server, key, tmp_path):
 
     with Client(server.grpc, ca=server.ca, key=key) as c:
         for name, right in (("stereo-bag", ["--right-topic", "/cam1/image_raw/compressed"]), ("mono-bag", [])):
-            c.create_session(name, camera=kl + dl, stereo=stereo)
+            c.create_session(name, camera=camera, stereo=stereo)
             job = ingest(server, folder, "--session", name, "--topic", "/cam0/image_raw/compressed", *right,
                          "--exclude-last-frames", "0", "--min-confidence", "0", "--sequence", "false")
             assert (job["state"], job["total"], job["errors"]) == ("done", 4, []), job

@@ -225,23 +225,13 @@ def test_rgbd_frames_give_metric_loops(server):
 def test_stereo_frames_give_metric_loops(server):
     """EuRoC's calibrated stereo pair (`create_session(stereo=...)`, `Frame.right`): frame 1
     closes on frame 0, sent with its right image, with a metric pose near the ground truth's 0.43 m."""
-    import re
-    from conftest import DATA
-    import numpy as np
+    from conftest import DATA, euroc_stereo
 
-    def sensor(side):
-        text = (DATA / f"euroc-lcd/sensor{side}.yaml").read_text()
-        grab = lambda key: [float(v) for v in re.search(key + r"\s*\[([^\]]*)\]", text, re.S).group(1).split(",")]  # noqa: E731
-        return np.array(grab("data:")).reshape(4, 4), grab("intrinsics:"), grab("distortion_coefficients:") + [0.0]
-
-    (tl, kl, dl), (tr, kr, dr) = sensor("Left"), sensor("Right")
-    t = np.linalg.inv(tr) @ tl
-    stereo = {"rotation": t[:3, :3].ravel().tolist(), "translation": t[:3, 3].tolist(),
-              "right_intrinsics": kr, "right_distortion": dr}
+    camera, stereo = euroc_stereo()
     img = lambda side, i: (DATA / f"euroc-lcd/{side}_img_{i}.png").read_bytes()  # noqa: E731
     key = server.tenant("stereo")
     with Client(server.grpc, key=key, ca=server.ca) as c:
-        c.create_session("euroc", camera=kl + dl, stereo=stereo)
+        c.create_session("euroc", camera=camera, stereo=stereo)
         c.add_frame("euroc", "mav", Frame(image=img("left", 0), right=img("right", 0), timestamp=0.0, frame_id=0))
         best = c.query("euroc", "other", image=img("left", 1), options=query_options(k=1))[0]
         v = best.verification

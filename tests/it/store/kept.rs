@@ -15,6 +15,20 @@ fn config(checkpoint_frames: usize) -> SearchConfig {
     SearchConfig { checkpoint_frames, ..Default::default() }
 }
 
+/// A session of Nordland raw-pixel rows (f16, the default index).
+pub(super) fn nordland_session(dim: usize) -> NewSession {
+    NewSession {
+        name: ID.into(),
+        dim,
+        descriptor_id: "nordland-pixels".into(),
+        storage: Storage::F16,
+        default_query: Default::default(),
+        camera: None,
+        thumbnails: false,
+        index: Default::default(),
+    }
+}
+
 /// Nordland image `i` as a frame: summer and winter are two robots.
 pub(super) fn frame(rows: &[Vec<f32>], i: usize) -> NewFrame {
     NewFrame {
@@ -57,17 +71,7 @@ fn checkpointed(dir: &Path) -> usize {
 /// checkpoint within a turn of being due).
 async fn filled(dir: &Path, rows: &[Vec<f32>], dim: usize) {
     let store = Store::open_with(dir, config(1)).unwrap();
-    let new = NewSession {
-        name: ID.into(),
-        dim,
-        descriptor_id: "nordland-pixels".into(),
-        storage: Storage::F16,
-        default_query: Default::default(),
-        camera: None,
-        thumbnails: false,
-        index: Default::default(),
-    };
-    store.create_session(Some(ID.into()), new).await.unwrap();
+    store.create_session(Some(ID.into()), nordland_session(dim)).await.unwrap();
     let s = store.session(ID).unwrap();
     // The first ten one at a time under idempotency keys, the rest in batches.
     let picks = picks();

@@ -7,7 +7,7 @@ use loopd::index::graph::{GraphParams, IndexKind};
 use loopd::index::query::LoopQuery;
 use loopd::index::rows::Mapping;
 use loopd::index::{SessionIndex, Storage};
-use loopd::store::{NewFrame, NewSession, SearchConfig, Store};
+use loopd::store::{NewFrame, SearchConfig, Store};
 use std::path::Path;
 
 /// Resident kB of the process's mappings of files under `dir`.
@@ -110,17 +110,7 @@ async fn a_store_keeps_its_sessions_rows_mapped_and_rebuilds_them_when_reopened(
     };
     let before = {
         let store = Store::open_with(dir.path(), SearchConfig::default()).unwrap();
-        let new = NewSession {
-            name: "nordland".into(),
-            dim,
-            descriptor_id: "nordland-pixels".into(),
-            storage: Storage::F16,
-            default_query: Default::default(),
-            camera: None,
-            thumbnails: false,
-            index: Default::default(),
-        };
-        store.create_session(Some("nordland".into()), new).await.unwrap();
+        store.create_session(Some("nordland".into()), super::kept::nordland_session(dim)).await.unwrap();
         let frames: Vec<NewFrame> = picks.iter().map(|&i| super::kept::frame(&rows, i)).collect();
         store.add_frames(&store.session("nordland").unwrap(), frames).await.unwrap();
         let info = store.session("nordland").unwrap().info();
