@@ -16,7 +16,10 @@
 //!      LOOPD_BENCH_SWEEP_MAX (largest size the search-time settings are swept at, default 100000),
 //!      LOOPD_BENCH_NOISE (the synthetic rows' noise norm, default 0.5),
 //!      LOOPD_BENCH_ROWS_RESIDENT_MB (the approximate index's rows are in a mapped file, as the
-//!      server keeps them, with this resident bound; default the server's, 1024)
+//!      server keeps them, with this resident bound, also the sealed parts'; default the
+//!      server's, 1024),
+//!      LOOPD_BENCH_SEAL (comma-separated: the graph is built once per value, sealed into mapped
+//!      parts of that many rows as the store's indexer does; 0: one graph in memory; default "0")
 //!
 //! Memory columns: "approx GiB in process" is what the approximate session holds in the
 //! process (graph, frame records, and the rows mapped in at the end, from /proc/self/smaps,
@@ -59,9 +62,10 @@ fn params() -> GraphParams {
     }
 }
 
-fn build(flat: &[f32], kind: IndexKind, mapping: Option<Mapping<'_>>) -> SessionIndex {
+fn build(flat: &[f32], kind: IndexKind, mapping: Option<Mapping<'_>>, seal_rows: usize) -> SessionIndex {
     let mut index = SessionIndex::with_rows(DIM, Storage::F16, mapping);
-    index.set_index(kind, params());
+    let sealed_resident = mapping.map_or(GraphParams::default().sealed_resident, |m| m.resident);
+    index.set_index(kind, GraphParams { seal_rows, sealed_resident, ..params() });
     let n = flat.len() / DIM;
     let bar = ProgressBar::new(n as u64)
         .with_style(ProgressStyle::with_template("  adding {pos}/{len} {wide_bar} {eta}").expect("template"));
@@ -73,6 +77,24 @@ fn build(flat: &[f32], kind: IndexKind, mapping: Option<Mapping<'_>>) -> Session
     }
     bar.finish_and_clear();
     index
+}
+
+/// Builds the graph over every row, as the store's indexer does: with `seal_rows`, at most that
+/// many rows in the live part, sealed into a mapped file in `dir` when full.
+fn index_all(approx: &SessionIndex, dir: &Path) -> anyhow::Result<()> {
+    let graph = approx.graph().ok_or_else(|| anyhow::anyhow!("no graph"))?;
+    let seal = graph.params().seal_rows;
+    let bar = ProgressBar::new(approx.len() as u64)
+        .with_style(ProgressStyle::with_template("  indexing {pos}/{len} {wide_bar} {eta}").expect("template"));
+    loop {
+        let room = if seal == 0 { 1 << 16 } else { (1 << 16).min(seal - graph.live_rows()) };
+        let Some(p) = approx.pending(room) else { break };
+        p.graph.add_rows(p.start, &p.reduced).map_err(anyhow::Error::msg)?;
+        graph.seal_if_due(dir).map_err(anyhow::Error::msg)?;
+        bar.set_position(graph.covered() as u64);
+    }
+    bar.finish_and_clear();
+    Ok(())
 }
 
 fn rss_mib() -> f64 {
@@ -183,65 +205,78 @@ fn main() -> anyhow::Result<()> {
          {} real rows of ../shared/data, the rest synthetic; {nq} real stored-frame queries; exact = loopd's exact kernels, 2 threads\n",
         p.dims, p.connectivity, p.expansion_add, p.expansion_search, p.threads, real.len()
     );
-    println!("| n | median best sim (real / synthetic) | build rows/s | recall@1 | recall@10 | p50 ms | p99 ms | exact p50 ms | same robot (1/16): recall@10, p50 ms | time 25%: recall@10, p50 ms | batch-64 q/s | graph bytes/frame | approx GiB in process | of it rows mapped in, GiB | rows file GiB | RSS GiB | FAISS HNSWFlat build rows/s | FAISS ef | FAISS recall@10 | FAISS p50 ms |");
-    println!("|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
+    println!("| n | sealed parts | median best sim (real / synthetic) | build rows/s | recall@1 | recall@10 | p50 ms | p99 ms | exact p50 ms | same robot (1/16): recall@10, p50 ms | time 25%: recall@10, p50 ms | batch-64 q/s | graph bytes/frame | approx GiB in process | of it rows mapped in, GiB | rows file GiB | RSS GiB | FAISS HNSWFlat build rows/s | FAISS ef | FAISS recall@10 | FAISS p50 ms |");
+    println!("|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
+    let seals: Vec<usize> =
+        env("LOOPD_BENCH_SEAL", "0").split(',').map(|s| s.trim().parse()).collect::<Result<_, _>>()?;
     let mut sweep = Vec::new();
     for &n in &sizes {
         let flat = rows(&real, n);
-        let exact = build(&flat, IndexKind::Exact, None);
-        let rows_dir = tempfile::tempdir_in(root().join("target"))?;
-        let resident: usize = env("LOOPD_BENCH_ROWS_RESIDENT_MB", "1024").parse::<usize>()? << 20;
-        let mut approx = build(&flat, IndexKind::Approximate, Some(Mapping { dir: rows_dir.path(), resident }));
-        let t = Instant::now();
-        approx.index_all().map_err(anyhow::Error::msg)?;
-        let rate = n as f64 / t.elapsed().as_secs_f64();
-        let step = real.len() / nq;
-        let queries: Vec<usize> = (0..nq).map(|i| i * step).collect();
-        let sim_real = median_best(&exact, &flat, queries.iter().copied());
-        let sim_syn = if n > real.len() {
-            median_best(&exact, &flat, (0..nq).map(|i| real.len() + i * (n - real.len()) / nq))
-        } else {
-            f32::NAN
-        };
-        let plain = |q: usize| LoopQuery { k: 10, exclude_frame: Some(q as u64), ..Default::default() };
-        let (r1, r10, p50, p99, exact_p50) = measure(&exact, &approx, &flat, &queries, &plain);
-        let same =
-            |q: usize| LoopQuery { robot_id: Some(format!("r{}", q % ROBOTS)), scope: Scope::SameRobot, ..plain(q) };
-        let (_, same_r10, same_p50, _, _) = measure(&exact, &approx, &flat, &queries, &same);
-        let quarter = |q: usize| LoopQuery { time_range: Some((0.0, (n / 4) as f64)), ..plain(q) };
-        let (_, tr_r10, tr_p50, _, _) = measure(&exact, &approx, &flat, &queries, &quarter);
-        let batch: Vec<Vec<f32>> = queries.iter().take(64).map(|&q| flat[q * DIM..(q + 1) * DIM].to_vec()).collect();
-        let t = Instant::now();
-        approx.search_batch(&batch, &LoopQuery { k: 10, ..Default::default() }, 2);
-        let batch_qps = batch.len() as f64 / t.elapsed().as_secs_f64();
-        let graph_bytes = approx.graph_bytes();
-        // Search-time settings on the same graph: recall against time.
-        let sweeps: &[(usize, usize)] = if n <= sweep_max {
-            &[(64, 4), (128, 8), (256, 8), (256, 16), (512, 16), (512, 32), (1024, 32)]
-        } else {
-            &[]
-        };
-        for &(ef, per) in sweeps {
-            approx.tune_graph(ef, per);
-            let (r1, r10, p50, p99, _) = measure(&exact, &approx, &flat, &queries, &plain);
-            sweep.push(format!("| {n} | {ef} | {} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} |", per * 10 + 64));
-        }
-        let rss = rss_mib() / 1024.0;
-        let mapped_in = loopd::index::rows::mapped_bytes(rows_dir.path()) as f64 / (1u64 << 30) as f64;
-        let in_process = approx.memory_bytes() as f64 / (1u64 << 30) as f64 + mapped_in;
-        let rows_file = approx.rows_file_bytes() as f64 / (1u64 << 30) as f64;
-        drop(exact);
-        drop(approx);
-        let f = if n <= faiss_max { faiss(&flat, &queries, r10) } else { None };
-        let fc = |g: fn(&Faiss) -> String| f.as_ref().map_or_else(|| "-".to_string(), g);
-        println!(
-            "| {n} | {sim_real:.3} / {sim_syn:.3} | {rate:.0} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} | {exact_p50:.2} | {same_r10:.4}, {same_p50:.2} | {tr_r10:.4}, {tr_p50:.2} | {batch_qps:.0} | {} | {in_process:.2} | {mapped_in:.2} | {rows_file:.2} | {rss:.1} | {} | {} | {} | {} |",
-            graph_bytes / n,
+        let exact = build(&flat, IndexKind::Exact, None, 0);
+        for (s, &seal) in seals.iter().enumerate() {
+            let rows_dir = tempfile::tempdir_in(root().join("target"))?;
+            let parts_dir = rows_dir.path().join("graph.parts");
+            let resident: usize = env("LOOPD_BENCH_ROWS_RESIDENT_MB", "1024").parse::<usize>()? << 20;
+            let mut approx =
+                build(&flat, IndexKind::Approximate, Some(Mapping { dir: rows_dir.path(), resident }), seal);
+            let t = Instant::now();
+            index_all(&approx, &parts_dir)?;
+            let rate = n as f64 / t.elapsed().as_secs_f64();
+            let parts = approx.graph().map_or(0, |g| g.sealed_parts().len());
+            let sealed_bytes = approx.graph().map_or(0, |g| g.sealed_bytes());
+            let step = real.len() / nq;
+            let queries: Vec<usize> = (0..nq).map(|i| i * step).collect();
+            let sim_real = median_best(&exact, &flat, queries.iter().copied());
+            let sim_syn = if n > real.len() {
+                median_best(&exact, &flat, (0..nq).map(|i| real.len() + i * (n - real.len()) / nq))
+            } else {
+                f32::NAN
+            };
+            let plain = |q: usize| LoopQuery { k: 10, exclude_frame: Some(q as u64), ..Default::default() };
+            let (r1, r10, p50, p99, exact_p50) = measure(&exact, &approx, &flat, &queries, &plain);
+            let same = |q: usize| LoopQuery {
+                robot_id: Some(format!("r{}", q % ROBOTS)),
+                scope: Scope::SameRobot,
+                ..plain(q)
+            };
+            let (_, same_r10, same_p50, _, _) = measure(&exact, &approx, &flat, &queries, &same);
+            let quarter = |q: usize| LoopQuery { time_range: Some((0.0, (n / 4) as f64)), ..plain(q) };
+            let (_, tr_r10, tr_p50, _, _) = measure(&exact, &approx, &flat, &queries, &quarter);
+            let batch: Vec<Vec<f32>> =
+                queries.iter().take(64).map(|&q| flat[q * DIM..(q + 1) * DIM].to_vec()).collect();
+            let t = Instant::now();
+            approx.search_batch(&batch, &LoopQuery { k: 10, ..Default::default() }, 2);
+            let batch_qps = batch.len() as f64 / t.elapsed().as_secs_f64();
+            let graph_bytes = approx.graph_bytes();
+            // Search-time settings on the same graph: recall against time.
+            let sweeps: &[(usize, usize)] = if n <= sweep_max && s == 0 {
+                &[(64, 4), (128, 8), (256, 8), (256, 16), (512, 16), (512, 32), (1024, 32)]
+            } else {
+                &[]
+            };
+            for &(ef, per) in sweeps {
+                approx.tune_graph(ef, per);
+                let (r1, r10, p50, p99, _) = measure(&exact, &approx, &flat, &queries, &plain);
+                sweep.push(format!("| {n} | {ef} | {} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} |", per * 10 + 64));
+            }
+            let rss = rss_mib() / 1024.0;
+            // Rows and sealed parts, both mapped files under the bench's folder.
+            let mapped_in = loopd::index::rows::mapped_bytes(rows_dir.path()) as f64 / (1u64 << 30) as f64;
+            let in_process = approx.memory_bytes() as f64 / (1u64 << 30) as f64 + mapped_in;
+            let rows_file = approx.rows_file_bytes() as f64 / (1u64 << 30) as f64;
+            drop(approx);
+            let f = if n <= faiss_max && s + 1 == seals.len() { faiss(&flat, &queries, r10) } else { None };
+            let fc = |g: fn(&Faiss) -> String| f.as_ref().map_or_else(|| "-".to_string(), g);
+            println!(
+            "| {n} | {parts} | {sim_real:.3} / {sim_syn:.3} | {rate:.0} | {r1:.3} | {r10:.4} | {p50:.2} | {p99:.2} | {exact_p50:.2} | {same_r10:.4}, {same_p50:.2} | {tr_r10:.4}, {tr_p50:.2} | {batch_qps:.0} | {} | {in_process:.2} | {mapped_in:.2} | {rows_file:.2} | {rss:.1} | {} | {} | {} | {} |",
+            (graph_bytes + sealed_bytes) / n,
             fc(|f| format!("{:.0}", f.build_per_s)),
             fc(|f| f.ef.to_string()),
             fc(|f| format!("{:.4}", f.recall10)),
             fc(|f| format!("{:.2}", f.p50_ms)),
         );
+        }
+        drop(exact);
     }
     println!("\nsearch-time settings on the same graphs (k = 10; candidates = per-result x 10 + 64, re-scored):\n");
     println!("| n | ef search | candidates | recall@1 | recall@10 | p50 ms | p99 ms |\n|--:|--:|--:|--:|--:|--:|--:|");

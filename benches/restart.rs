@@ -10,8 +10,11 @@
 //! read from disk as after a reboot; "warm" columns open again without dropping it.
 //!
 //! env: LOOPD_BENCH_SIZES (default "100000"), LOOPD_BENCH_DIR (default target/bench-restart;
-//! removed at the end unless LOOPD_BENCH_KEEP=1).
+//! removed at the end unless LOOPD_BENCH_KEEP=1), LOOPD_BENCH_SEAL (comma-separated: each size is
+//! written once per value, the graph sealed into mapped parts of that many frames,
+//! `--approx-seal-frames`; 0: one graph in memory; default: the server's default).
 use indicatif::{ProgressBar, ProgressStyle};
+use loopd::index::graph::GraphParams;
 use loopd::index::Storage;
 use loopd::store::{NewFrame, NewSession, SearchConfig, Store};
 use std::path::Path;
@@ -55,9 +58,9 @@ fn checkpointed(dir: &Path) -> usize {
 
 /// Opens the store (no checkpoint written meanwhile); seconds to ready, frames taken from the
 /// kept files, frames, RSS after.
-fn open(dir: &Path) -> anyhow::Result<(f64, usize, usize, f64)> {
+fn open(dir: &Path, config: SearchConfig) -> anyhow::Result<(f64, usize, usize, f64)> {
     let t = Instant::now();
-    let store = Store::open_with(dir, SearchConfig { checkpoint_frames: usize::MAX, ..Default::default() })?;
+    let store = Store::open_with(dir, SearchConfig { checkpoint_frames: usize::MAX, ..config })?;
     let secs = t.elapsed().as_secs_f64();
     let s = store.session(ID)?;
     let out = (secs, s.restored_frames(), s.info().frames, rss_gib());
@@ -82,14 +85,19 @@ fn main() -> anyhow::Result<()> {
         drop_caches()
     );
     println!(
-        "| frames | written rows/s | sled + rows + graph on disk GiB | cold open, kept rows: s | restored from files | warm open, kept rows: s | cold open, every frame from sled: s | warm, from sled: s | RSS after open GiB |"
+        "| frames | graph sealed in parts of | written rows/s | sled + rows + graph on disk GiB | cold open, kept rows: s | restored from files | warm open, kept rows: s | cold open, every frame from sled: s | warm, from sled: s | RSS after open GiB |"
     );
-    println!("|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
-    for n in sizes {
+    println!("|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
+    let seals: Vec<usize> = match std::env::var("LOOPD_BENCH_SEAL") {
+        Ok(v) => v.split(',').map(|s| s.trim().parse()).collect::<Result<_, _>>()?,
+        Err(_) => vec![GraphParams::default().seal_rows],
+    };
+    for (n, seal_rows) in sizes.iter().flat_map(|&n| seals.iter().map(move |&s| (n, s))) {
+        let config = SearchConfig { graph: GraphParams { seal_rows, ..Default::default() }, ..Default::default() };
         let dir = base.join(n.to_string());
         let _ = std::fs::remove_dir_all(&dir);
         let written = rt.block_on(async {
-            let store = Store::open_with(&dir, SearchConfig::default())?;
+            let store = Store::open_with(&dir, config)?;
             let new = NewSession {
                 name: ID.into(),
                 dim: DIM,
@@ -160,17 +168,17 @@ fn main() -> anyhow::Result<()> {
             bytes as f64 / (1u64 << 30) as f64
         };
         drop_caches();
-        let (cold, restored, frames, _) = open(&dir)?;
+        let (cold, restored, frames, _) = open(&dir, config)?;
         assert_eq!(frames, n);
-        let (warm, _, _, rss) = open(&dir)?;
+        let (warm, _, _, rss) = open(&dir, config)?;
         std::fs::remove_file(dir.join(format!("rows/{ID}.json")))?;
         drop_caches();
-        let (cold_sled, from_files, frames, _) = open(&dir)?;
+        let (cold_sled, from_files, frames, _) = open(&dir, config)?;
         assert_eq!((frames, from_files), (n, 0));
         std::fs::remove_file(dir.join(format!("rows/{ID}.json"))).ok();
-        let (warm_sled, _, _, _) = open(&dir)?;
+        let (warm_sled, _, _, _) = open(&dir, config)?;
         println!(
-            "| {n} | {written:.0} | {disk:.2} | {cold:.2} | {restored} | {warm:.2} | {cold_sled:.2} | {warm_sled:.2} | {rss:.2} |"
+            "| {n} | {seal_rows} | {written:.0} | {disk:.2} | {cold:.2} | {restored} | {warm:.2} | {cold_sled:.2} | {warm_sled:.2} | {rss:.2} |"
         );
         if std::env::var("LOOPD_BENCH_KEEP").as_deref() != Ok("1") {
             std::fs::remove_dir_all(&dir)?;

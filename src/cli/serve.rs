@@ -93,9 +93,15 @@ pub struct ServeArgs {
     /// this many frames, and at most a minute after it last grew, so a restart loads it.
     #[arg(long, env = "LOOPD_APPROX_SAVE_FRAMES", default_value_t = GraphParams::default().save_rows)]
     pub approx_save_frames: usize,
+    /// A session's approximate index keeps at most this many frames' graph in the server's memory:
+    /// past it, they are sealed into a file of their own that is mapped, not held (0: never;
+    /// docs/storage.md). Each sealed part costs a query one more graph search.
+    #[arg(long, env = "LOOPD_APPROX_SEAL_FRAMES", default_value_t = GraphParams::default().seal_rows)]
+    pub approx_seal_frames: usize,
     /// Each session's descriptors live in a file under `<data-dir>/rows/` mapped into memory,
     /// and the server keeps at most this many MiB of each session's rows in its own memory
-    /// (the rest is the kernel's page cache, dropped under pressure; docs/storage.md).
+    /// (the rest is the kernel's page cache, dropped under pressure; docs/storage.md); the same
+    /// bound applies to each session's sealed graph parts (`--approx-seal-frames`).
     #[arg(long, env = "LOOPD_ROWS_RESIDENT_MB", default_value_t = (crate::store::ROWS_RESIDENT >> 20) as u64)]
     pub rows_resident_mb: u64,
     /// Keep every session's descriptors in the server's own memory instead (no row files; the
@@ -226,6 +232,8 @@ impl ServeArgs {
                 exact_below: self.approx_exact_below,
                 exact_share: self.approx_exact_share.clamp(0.0, 1.0),
                 save_rows: self.approx_save_frames.max(1),
+                seal_rows: self.approx_seal_frames,
+                sealed_resident: (self.rows_resident_mb as usize).saturating_mul(1 << 20),
                 ..defaults.graph
             },
             rows_resident: (!self.rows_in_memory).then_some((self.rows_resident_mb as usize).saturating_mul(1 << 20)),

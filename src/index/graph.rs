@@ -9,7 +9,8 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
 use usearch::{Index, IndexOptions, MetricKind, ScalarKind};
 
 /// How a session searches its descriptors.
@@ -73,6 +74,12 @@ pub struct GraphParams {
     /// The store saves a session's graph once it covers this many rows more than the saved one
     /// (and at most once a minute otherwise), so a restart loads it instead of rebuilding.
     pub save_rows: usize,
+    /// The live part of a graph (in the process's memory) is sealed into a mapped file of its
+    /// own once it holds this many rows (0: never), so memory and restart are bounded by it,
+    /// not by the map; each sealed part costs a query one more graph search.
+    pub seal_rows: usize,
+    /// Bytes of a sealed part's pages a session keeps mapped in before it releases them.
+    pub sealed_resident: usize,
 }
 
 impl Default for GraphParams {
@@ -88,6 +95,8 @@ impl Default for GraphParams {
             exact_below: 4096,
             exact_share: 0.125,
             save_rows: 50_000,
+            seal_rows: 2_000_000,
+            sealed_resident: 1 << 30,
         }
     }
 }
@@ -131,16 +140,114 @@ impl Drop for Context<'_> {
     }
 }
 
-/// One session's graph. Rows `0..covered()` are in it; only the store's indexer adds (in row
-/// order), searches only read.
+/// A sealed part of a graph: rows `start..end`, written to a file of its own once and searched
+/// through a read-only mapping of it (usearch's view), so it costs the process the pages searches
+/// touch, not its size, and a restart maps it instead of reading it.
+struct Sealed {
+    // Dropped in this order: the view points into the mapping.
+    index: Index,
+    map: memmap2::Mmap,
+    start: usize,
+    end: usize,
+    file: PathBuf,
+    sha256: String,
+    /// Its file hashed against `sha256` since it was mapped (a sealed part written by this
+    /// process is; one mapped at start is checked by sample at once, hashed in full later).
+    verified: AtomicBool,
+    contexts: Contexts,
+}
+
+/// Bytes a search is estimated to map in per candidate it keeps, per link of a node: each visited
+/// node's vector and links sit on a page of their own in a large file.
+const PAGE: usize = 4096;
+
+impl Sealed {
+    /// Maps `file` (rows `start..end` of `dims`-d) and views it as a graph.
+    fn open(
+        file: &Path,
+        start: usize,
+        end: usize,
+        dims: usize,
+        sha256: String,
+        bytes: Option<u64>,
+    ) -> Result<Self, String> {
+        let f = std::fs::File::open(file).map_err(|e| format!("{}: {e}", file.display()))?;
+        let len = f.metadata().map_err(|e| format!("{}: {e}", file.display()))?.len();
+        if bytes.is_some_and(|b| b != len) {
+            return Err(format!("{}: {len} bytes; its record says {}", file.display(), bytes.unwrap_or(0)));
+        }
+        // SAFETY: the file is this store's own (the data directory is locked by sled), written
+        // once through a temporary file and a rename and never written again: nothing changes
+        // the mapped bytes while the mapping lives. It is read-only.
+        let map = unsafe { memmap2::Mmap::map(&f) }.map_err(|e| format!("mapping {}: {e}", file.display()))?;
+        let meta =
+            Index::metadata_from_buffer(&map).map_err(|e| format!("{}: not a graph file: {e}", file.display()))?;
+        if meta.dimensions != dims as u64 || meta.count_present != (end - start) as u64 {
+            return Err(format!(
+                "{}: {} rows of {}-d; its record says {} of {dims}-d",
+                file.display(),
+                meta.count_present,
+                meta.dimensions,
+                end - start
+            ));
+        }
+        let index =
+            Index::new(&IndexOptions::from(meta)).map_err(|e| format!("creating the approximate index: {e}"))?;
+        // SAFETY: the view points into `map`, which `Self` owns and drops after `index` (field
+        // order), and whose bytes nothing changes (above).
+        unsafe { index.view_from_buffer(&map) }.map_err(|e| format!("viewing {}: {e}", file.display()))?;
+        if index.size() != end - start || index.dimensions() != dims {
+            return Err(format!("{}: holds {} rows of {}-d", file.display(), index.size(), index.dimensions()));
+        }
+        // The view walked the nodes in order; searches visit them all over the file: no
+        // read-ahead around each miss from now on.
+        let _ = map.advise(memmap2::Advice::Random);
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get()) + SEARCH_CONTEXTS;
+        // A view cannot grow; reserving sizes only its per-thread contexts.
+        let contexts = match index.reserve_capacity_and_threads(index.size(), threads) {
+            Ok(()) => threads,
+            Err(_) => std::thread::available_parallelism().map_or(1, |n| n.get()),
+        };
+        Ok(Self {
+            index,
+            map,
+            start,
+            end,
+            file: file.to_path_buf(),
+            sha256,
+            verified: AtomicBool::new(false),
+            contexts: Contexts::new(contexts),
+        })
+    }
+
+    /// Unmaps the part's pages from the process (they stay in the file and the page cache).
+    fn release(&self) {
+        // SAFETY: MADV_DONTNEED on a shared read-only file mapping drops the process's page
+        // table entries only; the next read maps the file's (unchanged) bytes in again, so a
+        // search running beside it reads the same values (as `rows.rs` releases rows).
+        if let Err(e) = unsafe { self.map.unchecked_advise(memmap2::UncheckedAdvice::DontNeed) } {
+            tracing::debug!(error = %e, "releasing a mapped graph part failed");
+        }
+    }
+}
+
+/// One session's graph. Rows `0..covered()` are in it: the sealed parts' rows (in order, each a
+/// mapped file), then the live part's, in memory. Only the store's indexer adds (in row order)
+/// and seals; searches only read.
 pub struct Graph {
+    /// The live part: rows `live_start..covered()`.
+    ///
     /// usearch's `reserve` reallocates the nodes, contexts and vector table that additions and
     /// searches read, and must not run beside them (its documentation: "no update or search
     /// operations should be running during this operation"); growing the graph while a query
     /// searched it crashed the server (SIGSEGV in CI). Growing takes this lock for writing,
-    /// every other call for reading.
+    /// every other call for reading. Sealing takes it for writing too, while it moves the live
+    /// rows into a sealed part, so a search holding it sees every row once.
     index: RwLock<Index>,
-    /// Calls inside the index at once, at most the contexts it reserved.
+    /// The sealed parts, in row order, ending at `live_start`.
+    sealed: RwLock<Vec<Arc<Sealed>>>,
+    live_start: AtomicUsize,
+    /// Calls inside the live part at once, at most the contexts it reserved.
     contexts: Contexts,
     /// How many contexts the index reserves.
     context_count: usize,
@@ -151,13 +258,15 @@ pub struct Graph {
     /// `store::graph::queries_search_a_graph_while_it_grows_past_several_reservations`), so only
     /// the adding thread reads it, after its additions.
     memory: AtomicUsize,
+    /// Bytes of the sealed parts searches are estimated to have mapped in since their pages were
+    /// last released (at `sealed_resident`).
+    touched: AtomicUsize,
     params: GraphParams,
 }
 
 impl Graph {
-    pub fn new(row_dim: usize, params: GraphParams) -> Result<Self, String> {
-        let dims = if params.dims == 0 || params.dims > row_dim { row_dim } else { params.dims };
-        let options = IndexOptions {
+    fn options(dims: usize, params: &GraphParams) -> IndexOptions {
+        IndexOptions {
             dimensions: dims,
             metric: MetricKind::IP,
             quantization: ScalarKind::F16,
@@ -165,21 +274,35 @@ impl Graph {
             expansion_add: params.expansion_add,
             expansion_search: params.expansion_search,
             multi: false,
-        };
-        let index = Index::new(&options).map_err(|e| format!("creating the approximate index: {e}"))?;
-        let context_count = params.threads.max(1) + SEARCH_CONTEXTS;
+        }
+    }
+
+    /// A new, empty live part with its contexts reserved.
+    fn live_index(dims: usize, params: &GraphParams, context_count: usize) -> Result<Index, String> {
+        let index =
+            Index::new(&Self::options(dims, params)).map_err(|e| format!("creating the approximate index: {e}"))?;
         // Contexts from the start: a search of the empty graph needs one too.
         index
             .reserve_capacity_and_threads(1024, context_count)
             .map_err(|e| format!("reserving the approximate index: {e}"))?;
+        Ok(index)
+    }
+
+    pub fn new(row_dim: usize, params: GraphParams) -> Result<Self, String> {
+        let dims = if params.dims == 0 || params.dims > row_dim { row_dim } else { params.dims };
+        let context_count = params.threads.max(1) + SEARCH_CONTEXTS;
+        let index = Self::live_index(dims, &params, context_count)?;
         let memory = AtomicUsize::new(index.memory_usage());
         Ok(Self {
             index: RwLock::new(index),
+            sealed: RwLock::new(Vec::new()),
+            live_start: AtomicUsize::new(0),
             contexts: Contexts::new(context_count),
             context_count,
             dims,
             covered: AtomicUsize::new(0),
             memory,
+            touched: AtomicUsize::new(0),
             params,
         })
     }
@@ -191,6 +314,9 @@ impl Graph {
     /// Changes the search-time settings (expansion, candidates per result).
     pub fn tune(&mut self, expansion_search: usize, candidates_per_result: usize) {
         self.index.get_mut().change_expansion_search(expansion_search);
+        for s in self.sealed.get_mut().iter() {
+            s.index.change_expansion_search(expansion_search);
+        }
         self.params.expansion_search = expansion_search;
         self.params.candidates_per_result = candidates_per_result;
     }
@@ -204,9 +330,21 @@ impl Graph {
         self.covered.load(Ordering::Acquire)
     }
 
-    /// Bytes the graph holds, as of its last addition (safe beside additions and searches).
+    /// Bytes the graph holds in the process's own memory (its live part), as of its last
+    /// addition (safe beside additions and searches). Sealed parts are mapped files:
+    /// [`Graph::sealed_bytes`].
     pub fn memory_bytes(&self) -> usize {
         self.memory.load(Ordering::Relaxed)
+    }
+
+    /// Sealed parts (row ranges) and the bytes of their files.
+    pub fn sealed_parts(&self) -> Vec<(std::ops::Range<usize>, usize)> {
+        self.sealed.read().iter().map(|s| (s.start..s.end, s.map.len())).collect()
+    }
+
+    /// Bytes of the sealed parts' files (mapped, not held).
+    pub fn sealed_bytes(&self) -> usize {
+        self.sealed.read().iter().map(|s| s.map.len()).sum()
     }
 
     /// The graph's view of a unit row: its first `dims` values, renormalised.
@@ -223,19 +361,21 @@ impl Graph {
     /// on the configured threads. `start` must be `covered()`: the indexer adds in order.
     pub fn add_rows(&self, start: usize, reduced: &[f32]) -> Result<(), String> {
         let n = reduced.len() / self.dims;
-        if start < SERIAL_ROWS && start + n > SERIAL_ROWS {
+        let live_start = self.live_start.load(Ordering::Acquire);
+        let serial_end = live_start + SERIAL_ROWS;
+        if start < serial_end && start + n > serial_end {
             // The serial part first, then the rest on every thread.
-            let split = (SERIAL_ROWS - start) * self.dims;
+            let split = (serial_end - start) * self.dims;
             self.add_rows(start, &reduced[..split])?;
-            return self.add_rows(SERIAL_ROWS, &reduced[split..]);
+            return self.add_rows(serial_end, &reduced[split..]);
         }
         if start != self.covered() {
             return Err(format!("rows from {start} added to a graph covering {}", self.covered()));
         }
         // Concurrent inserts into a small graph link it worse (measured: 111 Corridor rows on two
         // threads lost 1.3% of recall@5 in a one-off probe); one thread until it has grown.
-        let threads = if start < SERIAL_ROWS { 1 } else { self.params.threads.clamp(1, n.max(1)) };
-        let want = start + n;
+        let threads = if start < serial_end { 1 } else { self.params.threads.clamp(1, n.max(1)) };
+        let want = start + n - live_start;
         let capacity = self.index.read().capacity();
         if capacity < want {
             // Grow geometrically: usearch copies its slots on each reserve. Alone in the index.
@@ -267,33 +407,192 @@ impl Graph {
         if let Some(e) = failed.into_inner().unwrap_or_else(|p| p.into_inner()) {
             return Err(format!("adding to the approximate index: {e}"));
         }
-        self.covered.store(want, Ordering::Release);
+        self.covered.store(start + n, Ordering::Release);
         Ok(())
     }
 
     /// Up to `count` rows near `query` (already reduced) among those `allow` passes, best first
-    /// by the graph's (reduced, f16) scores.
-    pub fn search(&self, query: &[f32], count: usize, allow: impl Fn(usize) -> bool) -> Result<Vec<usize>, String> {
+    /// by the graph's (reduced, f16) scores: every part searched, the best `count` of all kept.
+    pub fn search(
+        &self,
+        query: &[f32],
+        count: usize,
+        allow: impl Fn(usize) -> bool + Sync,
+    ) -> Result<Vec<usize>, String> {
+        self.search_parts(query, count, 1, allow, |_| true)
+    }
+
+    /// The parts' row ranges: the sealed ones in order, then the live one.
+    pub fn parts(&self) -> Vec<std::ops::Range<usize>> {
+        let _live = self.index.read();
+        let mut out: Vec<_> = self.sealed.read().iter().map(|s| s.start..s.end).collect();
+        out.push(self.live_start.load(Ordering::Acquire)..self.covered());
+        out
+    }
+
+    /// As [`Graph::search`], through the parts whose row range `take` accepts only (the caller
+    /// scans the others' rows itself: a filter that passes few of a part's rows is faster
+    /// scanned than searched through), the parts split across up to `threads` threads.
+    pub fn search_parts(
+        &self,
+        query: &[f32],
+        count: usize,
+        threads: usize,
+        allow: impl Fn(usize) -> bool + Sync,
+        take: impl Fn(std::ops::Range<usize>) -> bool,
+    ) -> Result<Vec<usize>, String> {
         let covered = self.covered();
+        // The live part's lock first: sealing holds it while it moves rows into a sealed part.
         let index = self.index.read();
-        let _context = self.contexts.take();
-        let found = index
-            .filtered_search(query, count, |key| (key as usize) < covered && allow(key as usize))
-            .map_err(|e| format!("searching the approximate index: {e}"))?;
-        Ok(found.keys.into_iter().map(|k| k as usize).collect())
+        let sealed = self.sealed.read().clone();
+        let live_start = self.live_start.load(Ordering::Acquire);
+        // None: the live part.
+        let mut jobs: Vec<Option<&Sealed>> = Vec::new();
+        if live_start < covered && take(live_start..covered) {
+            jobs.push(None);
+        }
+        jobs.extend(sealed.iter().filter(|s| take(s.start..s.end)).map(|s| Some(&**s)));
+        let allow = &allow;
+        let index = &*index;
+        let search_one = move |job: &Option<&Sealed>| -> Result<Vec<(f32, u64)>, String> {
+            let found = match job {
+                None => {
+                    let _context = self.contexts.take();
+                    index.filtered_search(query, count, |key| (key as usize) < covered && allow(key as usize))
+                }
+                Some(part) => {
+                    let _context = part.contexts.take();
+                    part.index.filtered_search(query, count, |key| allow(key as usize))
+                }
+            }
+            .map_err(Self::search_failed)?;
+            Ok(found.distances.into_iter().zip(found.keys).collect())
+        };
+        let results: Vec<Result<Vec<(f32, u64)>, String>> = if threads > 1 && jobs.len() > 1 {
+            let per = jobs.len().div_ceil(threads);
+            std::thread::scope(|s| {
+                let handles: Vec<_> = jobs
+                    .chunks(per)
+                    .map(|chunk| s.spawn(move || chunk.iter().map(search_one).collect::<Vec<_>>()))
+                    .collect();
+                handles
+                    .into_iter()
+                    .flat_map(|h| h.join().unwrap_or_else(|_| vec![Err("a graph search thread panicked".to_string())]))
+                    .collect()
+            })
+        } else {
+            jobs.iter().map(search_one).collect()
+        };
+        let searched_sealed = jobs.iter().filter(|j| j.is_some()).count();
+        self.touched_sealed(&sealed, searched_sealed);
+        let mut all = Vec::new();
+        for r in results {
+            all.extend(r?);
+        }
+        if searched_sealed > 0 {
+            all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        }
+        Ok(all.into_iter().take(count).map(|(_, k)| k as usize).collect())
+    }
+
+    /// Counts a search's pages of the sealed parts (the estimate: a page per link of each node
+    /// kept, per part) and, past `sealed_resident` bytes, unmaps every part's pages.
+    fn touched_sealed(&self, sealed: &[Arc<Sealed>], searched: usize) {
+        let bytes = searched * self.params.expansion_search * self.params.connectivity * PAGE;
+        if self.touched.fetch_add(bytes, Ordering::Relaxed) + bytes > self.params.sealed_resident {
+            self.touched.store(0, Ordering::Relaxed);
+            sealed.iter().for_each(|s| s.release());
+        }
+    }
+
+    fn search_failed(e: impl std::fmt::Display) -> String {
+        format!("searching the approximate index: {e}")
+    }
+
+    /// Rows in the live part.
+    pub fn live_rows(&self) -> usize {
+        self.covered() - self.live_start.load(Ordering::Acquire)
+    }
+
+    /// Seals the live part once it holds `seal_rows` rows: writes it to a file in `dir`, maps that
+    /// file as a sealed part and starts an empty live part. The rows sealed, if it did. Only the
+    /// indexer calls it, between its additions.
+    pub fn seal_if_due(&self, dir: &Path) -> Result<Option<std::ops::Range<usize>>, String> {
+        let (start, end) = (self.live_start.load(Ordering::Acquire), self.covered());
+        if self.params.seal_rows == 0 || end - start < self.params.seal_rows {
+            return Ok(None);
+        }
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        let file = dir.join(format!("{start}-{end}.usearch"));
+        let tmp = file.with_extension("usearch.tmp");
+        let tmp_str = tmp.to_str().ok_or_else(|| format!("{}: not a UTF-8 path", tmp.display()))?;
+        self.index.read().save(tmp_str).map_err(|e| format!("saving the approximate index: {e}"))?;
+        std::fs::File::open(&tmp).and_then(|f| f.sync_all()).map_err(|e| format!("{}: {e}", tmp.display()))?;
+        let sha256 = sha256_file(&tmp)?;
+        std::fs::rename(&tmp, &file).map_err(|e| format!("{}: {e}", file.display()))?;
+        let _ = std::fs::File::open(dir).and_then(|d| d.sync_all());
+        let part = Sealed::open(&file, start, end, self.dims, sha256, None)?;
+        part.index.change_expansion_search(self.params.expansion_search);
+        part.verified.store(true, Ordering::Release);
+        let fresh = Self::live_index(self.dims, &self.params, self.context_count)?;
+        let mut live = self.index.write();
+        self.sealed.write().push(Arc::new(part));
+        *live = fresh;
+        self.live_start.store(end, Ordering::Release);
+        self.memory.store(live.memory_usage(), Ordering::Relaxed);
+        Ok(Some(start..end))
+    }
+
+    /// Hashes the first sealed part not hashed since it was mapped, against its record: Ok(true)
+    /// when it did and they match, Ok(false) when none was left, Err(why) when they differ (the
+    /// graph must not be trusted: it is rebuilt). Only the indexer calls it, a part per turn.
+    pub fn verify_next(&self) -> Result<bool, String> {
+        let part = self.sealed.read().iter().find(|s| !s.verified.load(Ordering::Acquire)).cloned();
+        let Some(part) = part else { return Ok(false) };
+        let sha = sha256_file(&part.file)?;
+        if sha != part.sha256 {
+            return Err(format!("{}: checksum mismatch (file {sha}, record {})", part.file.display(), part.sha256));
+        }
+        part.verified.store(true, Ordering::Release);
+        Ok(true)
     }
 }
 
 /// What a saved graph must match to be used, written beside it (`<file>.json`) after the graph
-/// file itself, so a graph file without its record, or with another's, is never trusted.
+/// file itself, so a graph file without its record, or with another's, is never trusted. The file
+/// holds the live part; the sealed parts are files of their own in [`parts_dir`], named by their
+/// rows and never written again.
 #[derive(Debug, PartialEq, Serialize, Deserialize)]
 struct SavedGraph {
     rows: usize,
     dims: usize,
     row_dim: usize,
     connectivity: usize,
-    /// SHA-256 of the graph file.
+    /// SHA-256 of the graph file (the live part).
     sha256: String,
+    /// The first row of the live part (records written before graphs were sealed: 0).
+    #[serde(default)]
+    live_start: usize,
+    /// The sealed parts, in row order, ending at `live_start`.
+    #[serde(default)]
+    sealed: Vec<SavedPart>,
+}
+
+#[derive(Debug, PartialEq, Serialize, Deserialize)]
+struct SavedPart {
+    start: usize,
+    end: usize,
+    bytes: u64,
+    sha256: String,
+}
+
+/// The folder of a graph file's sealed parts (`<session>.parts/` beside `<session>.usearch`).
+pub fn parts_dir(path: &Path) -> PathBuf {
+    path.with_extension("parts")
+}
+
+fn part_file(dir: &Path, rows: &std::ops::Range<usize>) -> PathBuf {
+    dir.join(format!("{}-{}.usearch", rows.start, rows.end))
 }
 
 fn sha256_file(path: &Path) -> Result<String, String> {
@@ -322,9 +621,16 @@ fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), String> {
 impl Graph {
     /// Saves the graph (rows `0..covered()` at the call) to `path` and its record beside it, each
     /// through a temporary file renamed into place: a crash leaves the old pair or the new one.
-    /// Only the indexer calls it, between its additions.
+    /// Only the indexer calls it, between its additions (and seals).
     pub fn save(&self, path: &Path, row_dim: usize) -> Result<usize, String> {
         let rows = self.covered();
+        let live_start = self.live_start.load(Ordering::Acquire);
+        let sealed = self
+            .sealed
+            .read()
+            .iter()
+            .map(|s| SavedPart { start: s.start, end: s.end, bytes: s.map.len() as u64, sha256: s.sha256.clone() })
+            .collect();
         let tmp = path.with_extension("usearch.tmp");
         let tmp_str = tmp.to_str().ok_or_else(|| format!("{}: not a UTF-8 path", tmp.display()))?;
         self.index.read().save(tmp_str).map_err(|e| format!("saving the approximate index: {e}"))?;
@@ -335,6 +641,8 @@ impl Graph {
             row_dim,
             connectivity: self.params.connectivity,
             sha256: sha256_file(&tmp)?,
+            live_start,
+            sealed,
         };
         let json = serde_json::to_vec(&record).map_err(|e| e.to_string())?;
         // The record goes first: until the rename of the graph file, the old graph no longer
@@ -350,7 +658,10 @@ impl Graph {
     }
 
     /// The graph saved at `path`, if its record matches it, these parameters and a session of
-    /// `row_dim`-d rows holding at least the rows it covers; why not, otherwise.
+    /// `row_dim`-d rows holding at least the rows it covers; why not, otherwise. The live part is
+    /// hashed and read into memory; the sealed parts are mapped, checked by their header and
+    /// length here, and hashed in full later ([`Graph::verify_next`]), so that a restart does not
+    /// read a large map's graph before it answers.
     pub fn load(path: &Path, row_dim: usize, params: GraphParams, rows_held: usize) -> Result<Self, String> {
         let json = std::fs::read(record_path(path)).map_err(|e| format!("no record beside the graph file: {e}"))?;
         let saved: SavedGraph = serde_json::from_slice(&json).map_err(|e| format!("unreadable record: {e}"))?;
@@ -364,6 +675,21 @@ impl Graph {
         if saved.rows > rows_held {
             return Err(format!("covers {} rows; the session holds {rows_held}", saved.rows));
         }
+        let dir = parts_dir(path);
+        let mut next = 0;
+        for part in &saved.sealed {
+            if part.start != next || part.end <= part.start {
+                return Err(format!("sealed rows {}..{} do not follow row {next}", part.start, part.end));
+            }
+            let file = part_file(&dir, &(part.start..part.end));
+            let sealed = Sealed::open(&file, part.start, part.end, graph.dims, part.sha256.clone(), Some(part.bytes))?;
+            sealed.index.change_expansion_search(params.expansion_search);
+            graph.sealed.get_mut().push(Arc::new(sealed));
+            next = part.end;
+        }
+        if saved.live_start != next || saved.rows < next {
+            return Err(format!("the live part starts at row {}; the sealed ones end at {next}", saved.live_start));
+        }
         let sha = sha256_file(path)?;
         if sha != saved.sha256 {
             return Err(format!("checksum mismatch (file {sha}, record {})", saved.sha256));
@@ -372,28 +698,42 @@ impl Graph {
         let context_count = graph.context_count;
         let index = graph.index.get_mut();
         index.load(path_str).map_err(|e| format!("loading: {e}"))?;
-        if index.size() != saved.rows || index.dimensions() != graph.dims {
+        if index.size() != saved.rows - next || index.dimensions() != graph.dims {
             return Err(format!(
                 "holds {} rows of {}-d; its record says {}",
                 index.size(),
                 index.dimensions(),
-                saved.rows
+                saved.rows - next
             ));
         }
         // Loading sizes the contexts by the machine's threads; this graph counts its own.
         index
-            .reserve_capacity_and_threads(index.capacity().max(saved.rows).max(1024), context_count)
+            .reserve_capacity_and_threads(index.capacity().max(index.size()).max(1024), context_count)
             .map_err(|e| format!("reserving the approximate index: {e}"))?;
         index.change_expansion_search(params.expansion_search);
         graph.memory.store(index.memory_usage(), Ordering::Relaxed);
+        graph.live_start.store(next, Ordering::Release);
         graph.covered.store(saved.rows, Ordering::Release);
+        // Files of parts the record does not name (sealed after it was written, before a crash).
+        let named: Vec<PathBuf> = graph.sealed.get_mut().iter().map(|s| s.file.clone()).collect();
+        if let Ok(entries) = std::fs::read_dir(&dir) {
+            for e in entries.flatten() {
+                if !named.contains(&e.path()) {
+                    let _ = std::fs::remove_file(e.path());
+                }
+            }
+        }
         Ok(graph)
     }
 
     /// The graph's stored (reduced, f16) values of a row, if it holds it.
     pub fn stored(&self, row: usize) -> Option<Vec<f32>> {
         let mut out = vec![0f32; self.dims];
-        match self.index.read().get(row as u64, &mut out) {
+        let got = match self.sealed.read().iter().find(|s| (s.start..s.end).contains(&row)) {
+            Some(part) => part.index.get(row as u64, &mut out),
+            None => self.index.read().get(row as u64, &mut out),
+        };
+        match got {
             Ok(1) => Some(out),
             _ => None,
         }

@@ -3,7 +3,10 @@
 //! searches never wait for the graph. Searches scan exactly the rows it has not reached yet.
 //! It also saves each graph to `<data-dir>/graphs/<session>.usearch` as it grows, so a restart
 //! loads it (checked against its record and the session's rows) and adds only the rows after it;
-//! a missing, stale or corrupt file is removed and the graph rebuilt from the rows.
+//! a missing, stale or corrupt file is removed and the graph rebuilt from the rows. Once a graph's
+//! live part holds `seal_rows` rows the indexer seals it into `<session>.parts/` (a file mapped,
+//! not held: `Graph::seal_if_due`), and it hashes each part mapped at start, one per turn, in the
+//! background: a part that fails is removed with the rest of the graph, which is rebuilt.
 use super::Session;
 use crate::index::graph::Graph;
 use crate::index::SessionIndex;
@@ -64,6 +67,7 @@ fn remove_files(path: &Path) {
     for p in [path.to_path_buf(), path.with_extension("json")] {
         let _ = std::fs::remove_file(p);
     }
+    let _ = std::fs::remove_dir_all(crate::index::graph::parts_dir(path));
 }
 
 /// Removes a deleted session's saved graph.
@@ -77,13 +81,18 @@ fn save_if_due(s: &Session) {
     let mut file = s.graph_file.lock();
     let covered = graph.covered();
     let params = s.index.read().graph_params();
-    let due = covered >= file.saved_rows + params.save_rows.max(1)
+    let seal = params.seal_rows > 0 && graph.live_rows() >= params.seal_rows;
+    let due = seal
+        || covered >= file.saved_rows + params.save_rows.max(1)
         || (covered > file.saved_rows && file.saved_at.elapsed() >= SAVE_INTERVAL);
     // A deleted session (its trees gone) is not saved again.
     if !due || s.trees.read().is_none() {
         return;
     }
     let t = Instant::now();
+    if seal {
+        seal_now(s, &graph, &file.path);
+    }
     match graph.save(&file.path, s.meta.dim) {
         Ok(rows) => {
             tracing::info!(session = %s.meta.id, rows, elapsed_ms = t.elapsed().as_millis() as u64, "approximate index saved");
@@ -96,11 +105,60 @@ fn save_if_due(s: &Session) {
     file.saved_at = Instant::now();
 }
 
+/// Seals the graph's live part into a mapped file (before a save, so the record written next names
+/// the part). The indexer adds at most `seal_rows` rows to a live part: each part holds that many.
+fn seal_now(s: &Session, graph: &Graph, path: &Path) {
+    let t = Instant::now();
+    match graph.seal_if_due(&crate::index::graph::parts_dir(path)) {
+        Ok(Some(rows)) => tracing::info!(
+            session = %s.meta.id,
+            from = rows.start,
+            to = rows.end,
+            elapsed_ms = t.elapsed().as_millis() as u64,
+            "approximate index: rows sealed into a mapped file"
+        ),
+        Ok(None) => {}
+        Err(e) => {
+            tracing::warn!(session = %s.meta.id, error = %e, "approximate index: sealing failed (the rows stay in memory)")
+        }
+    }
+}
+
+/// Hashes one sealed part mapped at start; a part that fails its record is removed with the
+/// whole graph, which is rebuilt from the rows.
+fn verify_one(s: &Session) {
+    let Some(graph) = s.index.read().graph() else { return };
+    // A deleted session's files are gone; nothing to check.
+    if s.trees.read().is_none() {
+        return;
+    }
+    match graph.verify_next() {
+        Ok(_) => {}
+        Err(why) => {
+            let mut file = s.graph_file.lock();
+            tracing::warn!(session = %s.meta.id, %why, "approximate index file rejected; rebuilding it from the session's frames");
+            remove_files(&file.path);
+            file.saved_rows = 0;
+            s.index.write().rebuild_graph();
+        }
+    }
+}
+
 /// Rows taken from one session per turn, so that one large build does not starve the others.
 const ROWS_PER_TURN: usize = 8192;
 
 /// Pause when no session has rows waiting.
 const IDLE: Duration = Duration::from_millis(20);
+
+/// Rows to add to a session's graph this turn: up to the end of its live part (sealed earlier in
+/// the turn when full; one that could not be sealed grows on, and is sealed larger later).
+fn rows_this_turn(s: &Session) -> usize {
+    let Some(graph) = s.index.read().graph() else { return ROWS_PER_TURN };
+    match graph.params().seal_rows.saturating_sub(graph.live_rows()) {
+        0 => ROWS_PER_TURN,
+        room => ROWS_PER_TURN.min(room),
+    }
+}
 
 type Sessions = RwLock<HashMap<String, Arc<Session>>>;
 
@@ -113,8 +171,9 @@ pub(super) fn spawn(sessions: Weak<Sessions>) {
         let mut added = false;
         for s in list {
             save_if_due(&s);
+            verify_one(&s);
             super::kept::checkpoint_if_due(&s);
-            let pending = s.index.read().pending(ROWS_PER_TURN);
+            let pending = s.index.read().pending(rows_this_turn(&s));
             if let Some(p) = pending {
                 added = true;
                 let rows = p.reduced.len() / p.graph.dims().max(1);

@@ -346,10 +346,11 @@ async fn http_sessions_take_and_report_their_index_kind() {
 }
 
 /// `loopd serve` (a real process) with an approximate session saved as it grows
-/// (`--approx-save-frames 1`): a restart loads the saved index (its log says so) instead of
-/// rebuilding it; SIGKILL right after frames were acknowledged loses none of them and the index
-/// catches up; a corrupt index file is detected, removed and rebuilt. Answers stay the exact
-/// session's throughout.
+/// (`--approx-save-frames 1`) and sealed into mapped parts of 64 frames (`--approx-seal-frames`):
+/// a restart loads the saved index (its log says so) instead of rebuilding it; SIGKILL right
+/// after frames were acknowledged loses none of them and the index catches up; a corrupt index
+/// file (the live part, then a sealed part) is detected, removed and rebuilt. Answers stay the
+/// exact session's throughout.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_saved_index_is_loaded_at_restart_and_a_corrupt_one_is_rebuilt() {
     use crate::common::proc::Loopd;
@@ -366,6 +367,8 @@ async fn a_saved_index_is_loaded_at_restart_and_a_corrupt_one_is_rebuilt() {
         "0",
         "--approx-exact-share",
         "0",
+        "--approx-seal-frames",
+        "64",
     ];
     let file = dir.path().join("graphs/c.usearch");
     let same_answers = |server: String| {
@@ -423,6 +426,29 @@ async fn a_saved_index_is_loaded_at_restart_and_a_corrupt_one_is_rebuilt() {
     let (s, _) = Loopd::start(dir.path(), &flags).await;
     assert!(log_has(&s, "approximate index file rejected"), "{}", std::fs::read_to_string(&s.log).unwrap());
     assert!(log_has(&s, "checksum mismatch"));
+    let mut c = LoopdClient::connect(s.grpc_url()).await.unwrap();
+    indexed(&mut c, "c").await;
+    same_answers(s.grpc_url()).await;
+    let t = Instant::now();
+    while !log_has(&s, "rows sealed into a mapped file") || !log_has(&s, "\"rows\":222") {
+        assert!(t.elapsed() < Duration::from_secs(30), "the rebuilt index was not sealed and saved");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    s.stop().await;
+    // A corrupt sealed part: its header and length check out, so the start maps it; the indexer
+    // hashes it in the background, rejects the index and rebuilds it.
+    let part = dir.path().join("graphs/c.parts/64-128.usearch");
+    let mut bytes = std::fs::read(&part).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid..mid + 64].iter_mut().for_each(|b| *b ^= 0x5a);
+    std::fs::write(&part, bytes).unwrap();
+    let (s, _) = Loopd::start(dir.path(), &flags).await;
+    assert!(log_has(&s, "approximate index loaded"), "{}", std::fs::read_to_string(&s.log).unwrap());
+    let t = Instant::now();
+    while !log_has(&s, "64-128.usearch: checksum mismatch") {
+        assert!(t.elapsed() < Duration::from_secs(30), "{}", std::fs::read_to_string(&s.log).unwrap());
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
     let mut c = LoopdClient::connect(s.grpc_url()).await.unwrap();
     indexed(&mut c, "c").await;
     same_answers(s.grpc_url()).await;

@@ -94,3 +94,74 @@ fn queries_search_a_graph_while_it_grows_past_several_reservations() {
         .collect();
     assert!(misses.len() * 100 <= probes.len() * 2, "{} of {} rows not found: {misses:?}", misses.len(), probes.len());
 }
+
+/// A graph sealed into parts (each a mapped file) answers as one graph: every 10th Nordland row
+/// finds itself across the parts; saved and loaded again it maps the parts (its own memory holds
+/// only the live rows) and answers the same; the parts mapped at load are hashed one per call,
+/// and a part whose bytes changed is caught there (its header and length still check out at load),
+/// a truncated one at load.
+#[test]
+fn sealed_parts_answer_as_one_graph_and_load_mapped() {
+    let (rows, dim) = nordland_rows();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("s.usearch");
+    let parts = loopd::index::graph::parts_dir(&path);
+    let params = GraphParams { dims: 0, threads: 2, seal_rows: 1500, ..Default::default() };
+    let graph = Graph::new(dim, params).unwrap();
+    let reduced: Vec<Vec<f32>> = rows
+        .iter()
+        .map(|r| {
+            let mut out = Vec::new();
+            graph.reduce(r, &mut out);
+            out
+        })
+        .collect();
+    for start in (0..rows.len()).step_by(500) {
+        let end = (start + 500).min(rows.len());
+        graph.add_rows(start, &reduced[start..end].concat()).unwrap();
+        graph.seal_if_due(&parts).unwrap();
+    }
+    let sealed: Vec<_> = graph.sealed_parts().into_iter().map(|(r, _)| r).collect();
+    assert_eq!(sealed, [0..1500, 1500..3000, 3000..4500]);
+    assert_eq!((graph.covered(), graph.live_rows()), (4800, 300));
+    let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f32>();
+    let answers = |g: &Graph| -> Vec<Vec<usize>> {
+        (0..rows.len()).step_by(10).map(|i| g.search(&reduced[i], 5, |_| true).unwrap()).collect()
+    };
+    let before = answers(&graph);
+    let misses: Vec<usize> = (0..rows.len())
+        .step_by(10)
+        .zip(&before)
+        .filter(|&(i, found)| found[0] != i && dot(&reduced[i], &reduced[found[0]]) < 0.999)
+        .map(|(i, _)| i)
+        .collect();
+    assert!(misses.len() * 100 <= before.len() * 2, "{} of {} rows not found: {misses:?}", misses.len(), before.len());
+    // A filter reaches into every part: only odd rows.
+    for i in [7usize, 1501, 3333, 4700] {
+        let found = graph.search(&reduced[i], 5, |r| r % 2 == 1).unwrap();
+        assert!(!found.is_empty() && found.iter().all(|r| r % 2 == 1), "row {i}: {found:?}");
+    }
+    graph.save(&path, dim).unwrap();
+    let loaded = Graph::load(&path, dim, params, rows.len()).unwrap();
+    assert_eq!(loaded.sealed_parts(), graph.sealed_parts());
+    assert_eq!(answers(&loaded), before);
+    // Its own memory: the 300 live rows (1,024 slots reserved), not the 4,500 sealed ones.
+    assert!(loaded.memory_bytes() * 2 < loaded.sealed_bytes(), "{} in memory", loaded.memory_bytes());
+    assert_eq!((0..4).map(|_| loaded.verify_next().unwrap()).collect::<Vec<_>>(), [true, true, true, false]);
+    drop(loaded);
+    // The second part's bytes change after its header: mapped, then caught by its hash.
+    let file = parts.join("1500-3000.usearch");
+    let mut bytes = std::fs::read(&file).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid..mid + 64].iter_mut().for_each(|b| *b ^= 0x5a);
+    std::fs::write(&file, &bytes).unwrap();
+    let loaded = Graph::load(&path, dim, params, rows.len()).unwrap();
+    assert!(loaded.verify_next().unwrap());
+    let err = loaded.verify_next().unwrap_err();
+    assert!(err.contains("1500-3000") && err.contains("checksum mismatch"), "{err}");
+    drop(loaded);
+    // Cut short: refused at load.
+    std::fs::write(&file, &bytes[..mid]).unwrap();
+    let err = Graph::load(&path, dim, params, rows.len()).err().unwrap();
+    assert!(err.contains("1500-3000"), "{err}");
+}

@@ -542,3 +542,64 @@ fn selective_filters_on_the_approximate_index_scan_the_allowed_rows_exactly() {
         }
     }
 }
+
+/// A graph sealed into parts (mapped files of 50 rows, the live part the last 22) answers every
+/// filter option as the exact search does: through every part on one or two threads, and with
+/// the parts a filter leaves few rows of scanned exactly instead (#33).
+#[test]
+fn sealed_graph_parts_answer_every_filter_as_the_exact_search() {
+    use loopd::index::graph::{parts_dir, GraphParams, IndexKind};
+    use loopd::index::SessionIndex;
+    let (query, reference) = corridor();
+    let dir = tempfile::tempdir().unwrap();
+    let build = |kind: IndexKind, params: GraphParams| {
+        let mut index = SessionIndex::new(2048, Storage::F16);
+        for (i, d) in reference.iter().chain(query.iter()).enumerate() {
+            let robot = if (i / 25) % 2 == 0 { "ref" } else { "query" };
+            index.push(i as u64, robot, i as f64, None, d);
+        }
+        index.set_index(kind, params);
+        if let Some(graph) = index.graph() {
+            let parts = parts_dir(&dir.path().join(format!("{}.usearch", params.exact_share)));
+            // As the store's indexer adds: at most a part's rows at a time, sealed when full.
+            while let Some(p) = index.pending(params.seal_rows - graph.live_rows()) {
+                p.graph.add_rows(p.start, &p.reduced).unwrap();
+                graph.seal_if_due(&parts).unwrap();
+            }
+        }
+        index
+    };
+    let exact = build(IndexKind::Exact, GraphParams::default());
+    let base = GraphParams { min_frames: 0, seal_rows: 50, exact_below: 0, exact_share: 0.0, ..Default::default() };
+    // Every part through the graph; then parts a filter leaves under 30% of scanned exactly.
+    for params in [base, GraphParams { exact_share: 0.3, ..base }] {
+        let approx = build(IndexKind::Approximate, params);
+        let graph = approx.graph().unwrap();
+        assert_eq!(graph.parts(), [0..50, 50..100, 100..150, 150..200, 200..222]);
+        let q = LoopQuery { k: 5, robot_id: Some("query".into()), ..Default::default() };
+        let options = [
+            q.clone(),
+            LoopQuery { scope: Scope::SameRobot, exclude_last_frames: 30, ..q.clone() },
+            LoopQuery { scope: Scope::OtherRobots, ..q.clone() },
+            LoopQuery { exclude_last_seconds: 40.0, at_time: Some(200.0), ..q.clone() },
+            LoopQuery { time_range: Some((20.5, 70.0)), ..q.clone() },
+            LoopQuery { frame_id_range: Some((7, 160)), exclude_frame: Some(9), ..q.clone() },
+            LoopQuery { min_score: 0.7, ..q.clone() },
+        ];
+        for (o, opts) in options.iter().enumerate() {
+            for (qi, d) in query.iter().enumerate().step_by(10) {
+                for threads in [1, 2] {
+                    let want = exact.search(d, opts, threads);
+                    let got = approx.search(d, opts, threads);
+                    let ids = |m: &[Match]| m.iter().map(|m| m.frame_id).collect::<Vec<_>>();
+                    assert_eq!(
+                        ids(&got),
+                        ids(&want),
+                        "share {}, option {o}, query {qi}, {threads} threads",
+                        params.exact_share
+                    );
+                }
+            }
+        }
+    }
+}
