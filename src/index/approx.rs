@@ -189,7 +189,7 @@ impl SessionIndex {
             .parts()
             .into_iter()
             .filter(|r| {
-                let allowed = self.allowed_in(filter, r.clone());
+                let allowed = self.allowed_in(filter, r.clone(), FILTER_SAMPLE / 4);
                 allowed < p.exact_below || (allowed as f32) < p.exact_share * r.len() as f32
             })
             .collect();
@@ -267,13 +267,14 @@ impl SessionIndex {
         heap.sorted()
     }
 
-    /// Rows of `rows` the filter is expected to let through, from up to 256 evenly spaced ones.
-    fn allowed_in(&self, filter: &Filter, rows: std::ops::Range<usize>) -> usize {
+    /// Rows of `rows` the filter is expected to let through, from up to `samples` evenly spaced
+    /// ones.
+    fn allowed_in(&self, filter: &Filter, rows: std::ops::Range<usize>, samples: usize) -> usize {
         let n = rows.len();
         if n == 0 {
             return 0;
         }
-        let step = n.div_ceil(256).max(1);
+        let step = n.div_ceil(samples).max(1);
         let (mut seen, mut allowed) = (0usize, 0usize);
         for row in rows.step_by(step) {
             seen += 1;
@@ -284,15 +285,8 @@ impl SessionIndex {
 
     /// Rows the filter is expected to let through, from an evenly spaced sample.
     fn allowed_estimate(&self, filter: &Filter) -> usize {
-        let n = self.frames.len();
-        let step = n.div_ceil(FILTER_SAMPLE).max(1);
-        let (mut seen, mut allowed) = (0usize, 0usize);
-        for row in (0..n).step_by(step) {
-            seen += 1;
-            allowed += filter.allows(row) as usize;
-        }
         // A sample that saw none sends the query to the exact scan, which is right for any share.
-        allowed * n / seen.max(1)
+        self.allowed_in(filter, 0..self.frames.len(), FILTER_SAMPLE)
     }
 
     /// A batch through the graph: the queries split across `threads`.

@@ -495,12 +495,19 @@ impl Graph {
         Ok(all.into_iter().take(count).map(|(_, k)| k as usize).collect())
     }
 
-    /// Counts a search's pages of the sealed parts (the estimate: a page per link of each node
-    /// kept, per part) and, past `sealed_resident` bytes, unmaps every part's pages.
+    /// Counts a search's pages of the sealed parts (an upper bound: a page per link of each node
+    /// kept, per part); each time that count passes `sealed_resident` bytes, reads how much of
+    /// the parts is mapped in (their mappings' `Rss` in /proc/self/smaps: searches revisit the
+    /// same nodes, so the count overstates it several times) and unmaps every part's pages when
+    /// that is over the bound.
     fn touched_sealed(&self, sealed: &[Arc<Sealed>], searched: usize) {
         let bytes = searched * self.params.expansion_search * self.params.connectivity * PAGE;
-        if self.touched.fetch_add(bytes, Ordering::Relaxed) + bytes > self.params.sealed_resident {
-            self.touched.store(0, Ordering::Relaxed);
+        if self.touched.fetch_add(bytes, Ordering::Relaxed) + bytes <= self.params.sealed_resident {
+            return;
+        }
+        self.touched.store(0, Ordering::Relaxed);
+        let Some(dir) = sealed.first().and_then(|s| s.file.parent()) else { return };
+        if super::rows::mapped_bytes(dir) > self.params.sealed_resident {
             sealed.iter().for_each(|s| s.release());
         }
     }

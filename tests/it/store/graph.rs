@@ -24,6 +24,17 @@ pub(super) fn nordland_rows() -> (Vec<Vec<f32>>, usize) {
     (rows, dim)
 }
 
+/// Each row as the graph holds it.
+fn reduced_rows(graph: &Graph, rows: &[Vec<f32>]) -> Vec<Vec<f32>> {
+    rows.iter()
+        .map(|r| {
+            let mut out = Vec::new();
+            graph.reduce(r, &mut out);
+            out
+        })
+        .collect()
+}
+
 #[test]
 fn queries_search_a_graph_while_it_grows_past_several_reservations() {
     let (rows, dim) = nordland_rows();
@@ -32,14 +43,7 @@ fn queries_search_a_graph_while_it_grows_past_several_reservations() {
     // first 512 pixels are the sky of the image's top rows, alike across frames.
     let params = GraphParams { dims: 0, threads: 2, ..Default::default() };
     let graph = Graph::new(dim, params).unwrap();
-    let reduced: Vec<Vec<f32>> = rows
-        .iter()
-        .map(|r| {
-            let mut out = Vec::new();
-            graph.reduce(r, &mut out);
-            out
-        })
-        .collect();
+    let reduced = reduced_rows(&graph, &rows);
     let done = AtomicBool::new(false);
     let (searches, failures) = (AtomicUsize::new(0), AtomicUsize::new(0));
     std::thread::scope(|s| {
@@ -108,14 +112,7 @@ fn sealed_parts_answer_as_one_graph_and_load_mapped() {
     let parts = loopd::index::graph::parts_dir(&path);
     let params = GraphParams { dims: 0, threads: 2, seal_rows: 1500, ..Default::default() };
     let graph = Graph::new(dim, params).unwrap();
-    let reduced: Vec<Vec<f32>> = rows
-        .iter()
-        .map(|r| {
-            let mut out = Vec::new();
-            graph.reduce(r, &mut out);
-            out
-        })
-        .collect();
+    let reduced = reduced_rows(&graph, &rows);
     for start in (0..rows.len()).step_by(500) {
         let end = (start + 500).min(rows.len());
         graph.add_rows(start, &reduced[start..end].concat()).unwrap();
