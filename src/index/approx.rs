@@ -173,8 +173,7 @@ impl SessionIndex {
         let n = self.frames.len();
         let mut heap = TopK::new(k);
         let allowed = self.allowed_estimate(filter);
-        let p = &self.graph_params;
-        if allowed < p.exact_below || (allowed as f32) < p.exact_share * n as f32 {
+        if self.few_allowed(allowed, n) {
             return Some(self.subset_scan(q, opts, k, filter, allowed, threads));
         }
         let mut reduced = Vec::with_capacity(graph.dims());
@@ -188,20 +187,10 @@ impl SessionIndex {
         let scanned: Vec<std::ops::Range<usize>> = graph
             .parts()
             .into_iter()
-            .filter(|r| {
-                let allowed = self.allowed_in(filter, r.clone(), FILTER_SAMPLE / 4);
-                allowed < p.exact_below || (allowed as f32) < p.exact_share * r.len() as f32
-            })
+            .filter(|r| self.few_allowed(self.allowed_in(filter, r.clone(), FILTER_SAMPLE / 4), r.len()))
             .collect();
-        for r in scanned.iter().filter(|r| r.start < r.end) {
-            for row in r.clone() {
-                if filter.allows(row) {
-                    let score = self.host_dot(q, row);
-                    if score >= opts.min_score && heap.would_take(score, row) {
-                        heap.push(score, row);
-                    }
-                }
-            }
+        for r in &scanned {
+            self.scan_into(q, opts, filter, r.clone(), &mut heap);
         }
         let take = |r: std::ops::Range<usize>| !scanned.contains(&r);
         match graph.search_parts(&reduced, count, threads, |row| filter.allows(row), take) {
@@ -219,12 +208,7 @@ impl SessionIndex {
             }
         }
         // Rows the graph does not cover yet: exactly.
-        for row in covered..n {
-            let score = self.host_dot(q, row);
-            if score >= opts.min_score && heap.would_take(score, row) && filter.allows(row) {
-                heap.push(score, row);
-            }
-        }
+        self.scan_into(q, opts, filter, covered..n, &mut heap);
         Some(heap.sorted())
     }
 
@@ -265,6 +249,23 @@ impl SessionIndex {
         let mut heap = TopK::new(k);
         parts.into_iter().for_each(|(h, _)| heap.merge(h));
         heap.sorted()
+    }
+
+    /// True when a filter expected to let `allowed` of `rows` rows through leaves so few that
+    /// scanning them exactly beats a graph search (`exact_below`, `exact_share`).
+    fn few_allowed(&self, allowed: usize, rows: usize) -> bool {
+        let p = &self.graph_params;
+        allowed < p.exact_below || (allowed as f32) < p.exact_share * rows as f32
+    }
+
+    /// Scores the rows of `rows` the filter allows, one by one, into `heap`.
+    fn scan_into(&self, q: &[f32], opts: &LoopQuery, filter: &Filter, rows: std::ops::Range<usize>, heap: &mut TopK) {
+        for row in rows.filter(|&row| filter.allows(row)) {
+            let score = self.host_dot(q, row);
+            if score >= opts.min_score && heap.would_take(score, row) {
+                heap.push(score, row);
+            }
+        }
     }
 
     /// Rows of `rows` the filter is expected to let through, from up to `samples` evenly spaced

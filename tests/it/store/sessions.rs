@@ -527,16 +527,33 @@ fn selective_filters_on_the_approximate_index_scan_the_allowed_rows_exactly() {
         LoopQuery { frame_id_range: Some((7, 160)), exclude_frame: Some(9), ..base.clone() },
         LoopQuery { min_score: 0.7, ..base.clone() },
     ];
+    assert_same_answers(&exact, &approx, query, &options, "");
+}
+
+/// Every 10th query frame under every option, on one and two threads: `approx` gives the exact
+/// index's matches in its order with its scores, and finds something unless a minimum score is set.
+fn assert_same_answers(
+    exact: &loopd::index::SessionIndex,
+    approx: &loopd::index::SessionIndex,
+    query: &[Vec<f32>],
+    options: &[LoopQuery],
+    what: &str,
+) {
     for (o, opts) in options.iter().enumerate() {
         for (qi, q) in query.iter().enumerate().step_by(10) {
             for threads in [1, 2] {
                 let want = exact.search(q, opts, threads);
                 let got = approx.search(q, opts, threads);
                 let ids = |m: &[Match]| m.iter().map(|m| m.frame_id).collect::<Vec<_>>();
-                assert_eq!(ids(&got), ids(&want), "option {o}, query {qi}, {threads} threads");
-                assert!(!got.is_empty() || opts.min_score > 0.0, "option {o}, query {qi}: nothing found");
+                assert_eq!(ids(&got), ids(&want), "{what}option {o}, query {qi}, {threads} threads");
+                assert!(!got.is_empty() || opts.min_score > 0.0, "{what}option {o}, query {qi}: nothing found");
                 for (a, b) in got.iter().zip(&want) {
-                    assert!((a.score - b.score).abs() < 1e-5, "option {o}, query {qi}: {} vs {}", a.score, b.score);
+                    assert!(
+                        (a.score - b.score).abs() < 1e-5,
+                        "{what}option {o}, query {qi}: {} vs {}",
+                        a.score,
+                        b.score
+                    );
                 }
             }
         }
@@ -586,20 +603,6 @@ fn sealed_graph_parts_answer_every_filter_as_the_exact_search() {
             LoopQuery { frame_id_range: Some((7, 160)), exclude_frame: Some(9), ..q.clone() },
             LoopQuery { min_score: 0.7, ..q.clone() },
         ];
-        for (o, opts) in options.iter().enumerate() {
-            for (qi, d) in query.iter().enumerate().step_by(10) {
-                for threads in [1, 2] {
-                    let want = exact.search(d, opts, threads);
-                    let got = approx.search(d, opts, threads);
-                    let ids = |m: &[Match]| m.iter().map(|m| m.frame_id).collect::<Vec<_>>();
-                    assert_eq!(
-                        ids(&got),
-                        ids(&want),
-                        "share {}, option {o}, query {qi}, {threads} threads",
-                        params.exact_share
-                    );
-                }
-            }
-        }
+        assert_same_answers(&exact, &approx, query, &options, &format!("share {}, ", params.exact_share));
     }
 }
