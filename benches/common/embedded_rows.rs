@@ -81,7 +81,8 @@ pub struct Extension<'a> {
 
 impl<'a> Extension<'a> {
     pub fn new(real: &'a [Vec<f32>]) -> Self {
-        let sigma = env("LOOPD_BENCH_NOISE", "0.5").parse::<f32>().unwrap_or(0.5) / (DIM as f32).sqrt();
+        let dim = real.first().map_or(DIM, Vec::len);
+        let sigma = env("LOOPD_BENCH_NOISE", "0.5").parse::<f32>().unwrap_or(0.5) / (dim as f32).sqrt();
         Self { real, rng: Rng(7), sigma, next: 0 }
     }
 }

@@ -6,6 +6,7 @@ mod eval;
 mod export;
 mod images;
 mod ingest;
+mod models;
 mod serve;
 mod tenant;
 mod train;
@@ -37,6 +38,9 @@ pub enum Command {
     /// Weight file tools.
     #[command(subcommand)]
     Weights(weights::WeightsCommand),
+    /// Descriptor models brought as TorchScript (docs/models.md).
+    #[command(subcommand)]
+    Models(models::ModelsCommand),
     /// Top-5 ImageNet classes of each image (checks weights and preprocessing).
     Classify(classify::ClassifyArgs),
     /// The loop-closure descriptor of each image.
@@ -152,6 +156,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::Serve(a) => serve::run(a),
         Command::Weights(c) => weights::run(c),
+        Command::Models(c) => models::run(c),
         Command::Classify(a) => classify::run(a),
         Command::Embed(a) => embed::run(a),
         Command::Eval(a) => eval::run(a),

@@ -8,6 +8,7 @@ pub mod heads;
 pub mod labels;
 pub mod network;
 pub mod preprocess;
+pub mod script;
 pub mod tfjs;
 pub mod weights;
 

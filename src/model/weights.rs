@@ -58,7 +58,6 @@ impl WeightFile {
             let t = Tensor::from_data_size(view.data(), &shape, kind).to_kind(Kind::Float);
             tensors.push((name, t));
         }
-        let hex = |d: &[u8]| d.iter().map(|b| format!("{b:02x}")).collect::<String>();
         let sha256 = hex(&hash.finalize());
         let file_sha256 = hex(&sha2::Sha256::digest(&bytes));
         Ok(Self { metadata: metadata.into_iter().collect(), tensors, sha256, file_sha256 })
@@ -139,6 +138,11 @@ pub fn named_tensors(vs: &VarStore) -> Vec<(String, Tensor)> {
     let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
     v.sort_by(|a, b| a.0.cmp(&b.0));
     v
+}
+
+/// Lower-case hex of a digest.
+pub(crate) fn hex(d: &[u8]) -> String {
+    d.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 #[cfg(test)]

@@ -1,3 +1,4 @@
 mod bad_images;
 mod engine;
 mod network;
+mod script;

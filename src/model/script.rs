@@ -1,0 +1,234 @@
+//! Models brought by their users: a TorchScript file (`torch.jit.save`) and a manifest
+//! (`model.json`) saying how images go in and what comes out (docs/models.md). Loaded with
+//! libtorch's `CModule`; the rest of loopd sees unit descriptors and a descriptor id, as it
+//! does of the built-in network.
+use super::config::{Preprocess, ResizeMode};
+use super::preprocess::resized_rgb;
+use super::weights::hex;
+use anyhow::{bail, Context, Result};
+use image::RgbImage;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::path::{Path, PathBuf};
+use tch::{Device, Kind, Tensor};
+
+/// The manifest's file name in a model folder.
+pub const MANIFEST: &str = "model.json";
+
+/// Largest input side a manifest may ask for (pixels).
+const MAX_SIDE: u32 = 4096;
+/// Largest descriptor a model may output.
+const MAX_DIM: usize = 65_536;
+
+/// Channel order the model expects.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Channels {
+    Rgb,
+    Bgr,
+}
+
+/// How an image becomes the model's input: resized to `width` x `height` (or to fit inside it,
+/// `keep`), in `channels` order, each value `(pixel * scale - mean[c]) / std[c]` (pixel 0-255).
+/// The defaults are torchvision's ImageNet ones.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Input {
+    pub width: u32,
+    pub height: u32,
+    #[serde(default = "stretch")]
+    pub resize: ResizeMode,
+    #[serde(default = "rgb")]
+    pub channels: Channels,
+    #[serde(default = "div255")]
+    pub scale: f32,
+    #[serde(default = "imagenet_mean")]
+    pub mean: [f32; 3],
+    #[serde(default = "imagenet_std")]
+    pub std: [f32; 3],
+}
+
+fn stretch() -> ResizeMode {
+    ResizeMode::Stretch
+}
+fn rgb() -> Channels {
+    Channels::Rgb
+}
+fn div255() -> f32 {
+    1.0 / 255.0
+}
+fn imagenet_mean() -> [f32; 3] {
+    [0.485, 0.456, 0.406]
+}
+fn imagenet_std() -> [f32; 3] {
+    [0.229, 0.224, 0.225]
+}
+
+/// `model.json`: what loopd needs to run a TorchScript model, and what a user needs to know of it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    /// The model's name in the server (sessions name it): letters, digits, `-`, `_`, `.`.
+    pub name: String,
+    /// The TorchScript file, relative to the folder.
+    #[serde(default = "model_pt")]
+    pub file: String,
+    pub input: Input,
+    /// Values per descriptor the model outputs ([N, output_dim]).
+    pub output_dim: usize,
+    /// Whether the model's output is already L2-normalised (loopd normalises either way; a
+    /// normalised model whose output is not unit is refused by `loopd models check`).
+    #[serde(default)]
+    pub normalized: bool,
+    /// Its license, as text (shown by `GET /v1/models` and `loopd models check`).
+    #[serde(default)]
+    pub license: String,
+    /// Where it comes from (paper, repository, training data), as text.
+    #[serde(default)]
+    pub source: String,
+}
+
+fn model_pt() -> String {
+    "model.pt".into()
+}
+
+impl Manifest {
+    /// Reads and checks `dir/model.json`.
+    pub fn read(dir: &Path) -> Result<Self> {
+        let path = dir.join(MANIFEST);
+        let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        let m: Manifest =
+            serde_json::from_str(&text).with_context(|| format!("{}: not a model manifest", path.display()))?;
+        m.check().with_context(|| format!("{}", path.display()))?;
+        Ok(m)
+    }
+
+    fn check(&self) -> Result<()> {
+        let name_ok = !self.name.is_empty()
+            && self.name.len() <= 64
+            && self.name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c));
+        if !name_ok {
+            bail!("name {:?}: 1 to 64 letters, digits, '-', '_' or '.'", self.name);
+        }
+        let i = &self.input;
+        if !(32..=MAX_SIDE).contains(&i.width) || !(32..=MAX_SIDE).contains(&i.height) {
+            bail!("input {}x{}: each side must be 32 to {MAX_SIDE} pixels", i.width, i.height);
+        }
+        if !i.scale.is_finite() || i.scale <= 0.0 {
+            bail!("input scale {}: must be a positive number", i.scale);
+        }
+        if i.mean.iter().any(|m| !m.is_finite()) || i.std.iter().any(|s| !s.is_finite() || *s <= 0.0) {
+            bail!("input mean {:?} / std {:?}: finite, std positive", i.mean, i.std);
+        }
+        if !(1..=MAX_DIM).contains(&self.output_dim) {
+            bail!("output_dim {}: must be 1 to {MAX_DIM}", self.output_dim);
+        }
+        if self.file.is_empty() || Path::new(&self.file).components().count() != 1 {
+            bail!("file {:?}: a file name inside the model folder", self.file);
+        }
+        Ok(())
+    }
+
+    fn preprocess(&self) -> Preprocess {
+        Preprocess {
+            width: self.input.width,
+            height: self.input.height,
+            resize: self.input.resize,
+            ..Default::default()
+        }
+    }
+}
+
+/// A TorchScript descriptor model on its device. Not `Sync` (tch); one thread runs it.
+pub struct ScriptModel {
+    pub manifest: Manifest,
+    pub dir: PathBuf,
+    /// SHA-256 (hex) of the TorchScript file.
+    pub sha256: String,
+    pub device: Device,
+    module: tch::CModule,
+}
+
+impl ScriptModel {
+    /// Loads the model in `dir` (manifest and TorchScript file) onto `device`.
+    pub fn load(dir: &Path, device: Device) -> Result<Self> {
+        let manifest = Manifest::read(dir)?;
+        let file = dir.join(&manifest.file);
+        let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+        let sha256 = hex(&Sha256::digest(&bytes));
+        let mut module = tch::CModule::load_on_device(&file, device)
+            .with_context(|| format!("{}: not a TorchScript file libtorch can load", file.display()))?;
+        module.set_eval();
+        Ok(Self { manifest, dir: dir.to_path_buf(), sha256, device, module })
+    }
+
+    /// The descriptor space this model computes: its name, the file's hash and the manifest's
+    /// input (a different resize or normalisation is a different space).
+    pub fn descriptor_id(&self) -> String {
+        let input = serde_json::to_string(&self.manifest.input).unwrap_or_default();
+        let h = hex(&Sha256::digest(format!("{}|{input}|{}", self.sha256, self.manifest.output_dim)));
+        format!("script-{}-{}", self.manifest.name, &h[..12])
+    }
+
+    pub fn dim(&self) -> usize {
+        self.manifest.output_dim
+    }
+
+    /// The model's input for an image ([3, H, W] f32): resized as the built-in model resizes,
+    /// then in the manifest's channel order, scale, mean and std.
+    pub fn to_input(&self, img: &RgbImage) -> Tensor {
+        self.normalize(&self.resized(img))
+    }
+
+    /// The image resized for the model, RGB 0-255 ([3, H, W] f32), before normalisation.
+    pub fn resized(&self, img: &RgbImage) -> Tensor {
+        resized_rgb(img, &self.manifest.preprocess())
+    }
+
+    /// The manifest's normalisation of a resized RGB 0-255 [3, H, W] tensor.
+    pub fn normalize(&self, rgb: &Tensor) -> Tensor {
+        let i = &self.manifest.input;
+        let x = if i.channels == Channels::Bgr { rgb.flip([0]) } else { rgb.shallow_clone() };
+        let column = |v: [f32; 3]| Tensor::from_slice(&v).reshape([3, 1, 1]);
+        (x * f64::from(i.scale) - column(i.mean)) / column(i.std)
+    }
+
+    /// Raw model output for a batch of same-size inputs, [N, output_dim] f32 on the CPU, checked
+    /// against the manifest (shape, finite values).
+    pub fn forward(&self, inputs: &[Tensor]) -> Result<Tensor> {
+        if inputs.is_empty() {
+            bail!("empty batch");
+        }
+        let shape = inputs[0].size();
+        if inputs.iter().any(|t| t.size() != shape) {
+            bail!("inputs of one batch must share a size");
+        }
+        let x = Tensor::stack(inputs, 0).to_device(self.device).to_kind(Kind::Float);
+        let out = tch::no_grad(|| self.module.forward_ts(&[x]))
+            .with_context(|| format!("model {}: forward pass failed", self.manifest.name))?;
+        let out = out.to_kind(Kind::Float).to_device(Device::Cpu);
+        let want = [inputs.len() as i64, self.manifest.output_dim as i64];
+        if out.size() != want {
+            bail!(
+                "model {} returned a tensor of shape {:?}; its manifest says [N, {}] (output_dim)",
+                self.manifest.name,
+                out.size(),
+                self.manifest.output_dim
+            );
+        }
+        if !bool::try_from(out.isfinite().all())? {
+            bail!("model {} returned values that are not finite (NaN or infinite)", self.manifest.name);
+        }
+        Ok(out)
+    }
+
+    /// Unit descriptors ([N, output_dim] f32 on the CPU).
+    pub fn descriptors(&self, inputs: &[Tensor]) -> Result<Tensor> {
+        let out = self.forward(inputs)?;
+        let norm = out.norm_scalaropt_dim(2.0, [1i64].as_slice(), true);
+        if !bool::try_from(norm.gt(1e-12).all())? {
+            bail!("model {} returned an all-zero descriptor", self.manifest.name);
+        }
+        Ok(&out / norm)
+    }
+}
