@@ -5,7 +5,7 @@ use super::kernels::{dots_f16, dots_f32, dots_many_f16, dots_many_f32};
 use super::query::{self, LoopQuery, Match};
 use super::select::{rank_key, Filter, TopK};
 use super::Rows;
-use super::{SessionIndex, Storage, PARALLEL_MIN_VALUES};
+use super::{SessionIndex, Storage, FAULT_AROUND, PARALLEL_MIN_VALUES};
 use std::cmp::Reverse;
 
 impl SessionIndex {
@@ -161,7 +161,11 @@ impl SessionIndex {
     /// The host kernel's scores of the stored rows `first..first + out.len()`.
     pub(super) fn host_dots(&self, q: &[f32], first: usize, out: &mut [f32]) {
         let range = first * self.dim..(first + out.len()) * self.dim;
-        self.note_read(out.len());
+        // Mapped rows: a read maps in the kernel's fault-around window around it, more than a
+        // short run's own bytes (one re-scored candidate, a robot's frame among others'), so a
+        // run counts at least that much against the resident bound.
+        let row_bytes = self.dim * self.storage().bytes_per_value();
+        self.note_read(out.len().max(FAULT_AROUND.div_ceil(row_bytes)));
         match &self.rows {
             Rows::F16(v) => dots_f16(q, &v[range], out),
             Rows::F32(v) => dots_f32(q, &v[range], out),

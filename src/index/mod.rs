@@ -121,6 +121,11 @@ const PARALLEL_MIN_VALUES: usize = 8 << 20;
 /// Rows searched per chunk: big enough to amortise, small enough for threads to share work.
 const CHUNK_ROWS: usize = 4096;
 
+/// Bytes the kernel maps in around a read fault of a file mapping whose pages are cached (its
+/// fault-around window, debugfs `fault_around_bytes`, 64 KB by default): what one scattered read
+/// of mapped rows costs the resident bound.
+const FAULT_AROUND: usize = 64 << 10;
+
 /// Frames of the map (evenly spaced) a frame's similarity statistics are taken over
 /// ([`SessionIndex::row_stats`]).
 pub const ROW_SAMPLE: usize = 256;

@@ -83,11 +83,18 @@ fn mapped_rows_answer_as_rows_in_memory_and_stay_within_their_resident_bound() {
     mapped.set_index(IndexKind::Approximate, params);
     memory.index_all().unwrap();
     mapped.index_all().unwrap();
-    for q in rows[2400..].iter().step_by(211) {
+    // Each query re-scores its candidates, rows scattered over the file: the kernel maps in its
+    // fault-around window (64 KB) around each, more than the row itself (12 KB), and the count
+    // must say so, or the mapped-in rows grow past the bound query after query (issue #33's
+    // 10^7 run: 12 GiB mapped in against a 1 GiB bound).
+    let mut worst = 0usize;
+    for q in rows[2400..].iter().step_by(23) {
         let (a, b) = (memory.search(q, &opts, 1), mapped.search(q, &opts, 1));
         assert_eq!(a.first().map(|m| m.frame_id), b.first().map(|m| m.frame_id));
+        worst = worst.max(kb(dir.path()));
     }
-    assert!(kb(dir.path()) * 1024 <= bound + (dim * 2 * 1000), "graph searches keep the bound");
+    println!("through the graph: most seen {worst} kB (bound {} kB)", bound >> 10);
+    assert!(worst * 1024 <= bound + (128 << 10), "graph searches mapped in {worst} kB, bound {} kB", bound >> 10);
 }
 
 /// The store maps every session's rows by default; a reopened store writes them again from sled
