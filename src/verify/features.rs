@@ -30,8 +30,13 @@ const HEADER_V1: usize = 16;
 const MAGIC: &[u8; 4] = b"ORB2";
 /// Version 3 (written for frames with depth): version 2, then each keypoint's depth.
 const MAGIC_DEPTH: &[u8; 4] = b"ORB3";
+/// Version 4 (written for frames whose depth came from a stereo pair): version 3, then the rig's
+/// focal length times baseline (pixels x metres, f32), what a depth's noise follows from.
+const MAGIC_STEREO: &[u8; 4] = b"ORB4";
 /// A keypoint's depth: millimetres as u16 (0: none).
 const DEPTH_BYTES: usize = 2;
+/// Bytes of a stereo frame's focal length times baseline (f32), after its depths.
+pub const STEREO_BYTES: usize = 4;
 /// magic + descriptor bytes u8 + width u32 + height u32 + count u32, all little-endian.
 const HEADER_BYTES: usize = 17;
 /// x, y as 12-bit fixed point fractions of width and height, packed in 3 bytes.
@@ -103,17 +108,33 @@ pub struct Features {
     pub descriptor_bytes: usize,
     /// Each keypoint's depth in metres (0: none), when the frame came with depth; else empty.
     pub depths: Vec<f32>,
+    /// Where the depths came from a stereo pair, its rectified focal length times its baseline
+    /// (pixels x metres): a depth z is then good to z² σ_disparity / (f·B). 0: a depth sensor.
+    pub stereo_focal_baseline: f32,
 }
 
 impl Features {
     /// No keypoints (an image too small or too plain), with the image's size.
     pub fn none(width: u32, height: u32, descriptor_bytes: usize) -> Self {
-        Self { width, height, points: Vec::new(), descriptors: Vec::new(), descriptor_bytes, depths: Vec::new() }
+        Self {
+            width,
+            height,
+            points: Vec::new(),
+            descriptors: Vec::new(),
+            descriptor_bytes,
+            depths: Vec::new(),
+            stereo_focal_baseline: 0.0,
+        }
     }
 
     /// True when the frame came with depth.
     pub fn has_depth(&self) -> bool {
         !self.depths.is_empty()
+    }
+
+    /// True when the depths came from a stereo pair (see `stereo_focal_baseline`).
+    pub fn stereo_depth(&self) -> bool {
+        self.has_depth() && self.stereo_focal_baseline.is_finite() && self.stereo_focal_baseline > 0.0
     }
 
     /// Keypoint `i`'s depth in metres, if it has one.
@@ -182,7 +203,8 @@ impl Features {
         HEADER_BYTES + n * (POSITION_BYTES + descriptor_bytes)
     }
 
-    /// Encoded size with each keypoint's depth (2 more bytes a keypoint) or without.
+    /// Encoded size with each keypoint's depth (2 more bytes a keypoint) or without; a stereo
+    /// frame's takes [`STEREO_BYTES`] more.
     pub const fn encoded_len_of(n: usize, descriptor_bytes: usize, depth: bool) -> usize {
         Self::encoded_len(n, descriptor_bytes) + if depth { n * DEPTH_BYTES } else { 0 }
     }
@@ -191,14 +213,19 @@ impl Features {
     /// n u32 | n × (x, y: 12 bits each, 3 B) | n × descriptor bytes`. x, y are fixed point fractions
     /// of width / height: error at most side / 8190 (0.08 px at 640), a tenth of a pixel of the
     /// image extraction ran on at the default `max_side`. With depth, the magic is `"ORB3"` and
-    /// `n × depth` (millimetres, u16; 0: none) follows the descriptors.
+    /// `n × depth` (millimetres, u16; 0: none) follows the descriptors; with stereo depth the
+    /// magic is `"ORB4"` and the rig's focal length times baseline (f32) follows the depths.
     pub fn encode(&self) -> Vec<u8> {
         // Never write more entries than the shorter of the two vectors (they should match).
         let n = self.points.len().min(self.descriptors.len());
         let bytes = self.descriptor_bytes.clamp(1, DESCRIPTOR_BYTES);
-        let depth = self.has_depth();
+        let (depth, stereo) = (self.has_depth(), self.stereo_depth());
         let mut out = Vec::with_capacity(Self::encoded_len_of(n, bytes, depth));
-        out.extend_from_slice(if depth { MAGIC_DEPTH } else { MAGIC });
+        out.extend_from_slice(match (depth, stereo) {
+            (_, true) => MAGIC_STEREO,
+            (true, false) => MAGIC_DEPTH,
+            (false, _) => MAGIC,
+        });
         out.push(bytes as u8);
         out.extend_from_slice(&self.width.to_le_bytes());
         out.extend_from_slice(&self.height.to_le_bytes());
@@ -219,20 +246,24 @@ impl Features {
                 out.extend_from_slice(&mm.to_le_bytes());
             }
         }
+        if stereo {
+            out.extend_from_slice(&self.stereo_focal_baseline.to_le_bytes());
+        }
         out
     }
 
     /// Reads what [`encode`](Self::encode) wrote, and the version-1 blobs stored before it.
     pub fn decode(b: &[u8]) -> Result<Self, VerifyError> {
-        let depth = b.get(0..4) == Some(MAGIC_DEPTH);
+        let stereo = b.get(0..4) == Some(MAGIC_STEREO);
+        let depth = stereo || b.get(0..4) == Some(MAGIC_DEPTH);
         let (header, bytes, dims_at, pos_bytes) = match b.get(0..4) {
-            Some(m) if m == MAGIC || m == MAGIC_DEPTH => {
+            Some(m) if m == MAGIC || m == MAGIC_DEPTH || m == MAGIC_STEREO => {
                 (HEADER_BYTES, b.get(4).copied().map_or(0, usize::from), 5, POSITION_BYTES)
             }
             Some(m) if m == MAGIC_V1 => (HEADER_V1, DESCRIPTOR_BYTES, 4, 4),
             _ => {
                 return Err(VerifyError::Corrupt(format!(
-                    "features blob: bad magic (expected \"ORB3\", \"ORB2\" or \"ORB1\", {} bytes)",
+                    "features blob: bad magic (expected \"ORB4\", \"ORB3\", \"ORB2\" or \"ORB1\", {} bytes)",
                     b.len()
                 )))
             }
@@ -257,7 +288,11 @@ impl Features {
         if n > MAX_FEATURES {
             return Err(VerifyError::Corrupt(format!("features blob: {n} features exceeds limit {MAX_FEATURES}")));
         }
-        let expected = header + n * (pos_bytes + bytes + if depth { DEPTH_BYTES } else { 0 });
+        let trailer = if stereo { STEREO_BYTES } else { 0 };
+        if b.len() < header + trailer {
+            return Err(VerifyError::Corrupt(format!("features blob too short: {} bytes", b.len())));
+        }
+        let expected = header + n * (pos_bytes + bytes + if depth { DEPTH_BYTES } else { 0 }) + trailer;
         if b.len() != expected {
             return Err(VerifyError::Corrupt(format!(
                 "features blob: {} bytes, expected {expected} for {n} features",
@@ -284,8 +319,21 @@ impl Features {
         };
         let descriptors_at = header + pos_bytes * n;
         let depths_at = descriptors_at + bytes * n;
+        let depths_end = b.len() - trailer;
+        let stereo_focal_baseline = match b.get(depths_end..).and_then(|t| <[u8; 4]>::try_from(t).ok()) {
+            Some(t) => f32::from_le_bytes(t),
+            None => 0.0,
+        };
+        if stereo && !(stereo_focal_baseline.is_finite() && stereo_focal_baseline > 0.0) {
+            return Err(VerifyError::Corrupt(format!(
+                "features blob: stereo focal length x baseline {stereo_focal_baseline} is not a positive number"
+            )));
+        }
         let depths = if depth {
-            b[depths_at..].chunks_exact(DEPTH_BYTES).map(|c| u16::from_le_bytes([c[0], c[1]]) as f32 / 1000.0).collect()
+            b[depths_at..depths_end]
+                .chunks_exact(DEPTH_BYTES)
+                .map(|c| u16::from_le_bytes([c[0], c[1]]) as f32 / 1000.0)
+                .collect()
         } else {
             Vec::new()
         };
@@ -297,7 +345,7 @@ impl Features {
                 d
             })
             .collect();
-        Ok(Self { width, height, points, descriptors, descriptor_bytes: bytes, depths })
+        Ok(Self { width, height, points, descriptors, descriptor_bytes: bytes, depths, stereo_focal_baseline })
     }
 }
 

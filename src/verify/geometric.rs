@@ -36,9 +36,23 @@ const PNP_THRESHOLD_PX: f32 = 4.0;
 /// The metric pose's noise model (its covariance, `pnp_covariance`): a keypoint's position is
 /// good to this many pixels (one standard deviation) ...
 const PIXEL_SIGMA_PX: f64 = 1.0;
-/// ... and its depth to this much times its depth squared (metres; structured light and stereo
-/// both lose depth precision with the square of the distance; 2.5 mm at 1 m, 1 cm at 2 m).
+/// ... and a depth sensor's depth to this much times its depth squared (metres; structured light
+/// loses depth precision with the square of the distance; 2.5 mm at 1 m, 1 cm at 2 m) ...
 const DEPTH_SIGMA_PER_M: f64 = 0.0025;
+/// ... and a stereo depth to z² σ_d / (f·B): the disparity σ_d is the difference of two keypoint
+/// positions, each good to `PIXEL_SIGMA_PX`, so √2 of it; f·B is the rig's (from the frame's
+/// features). For EuRoC's rig (f·B ≈ 50 px·m) that is 2.8 cm at 1 m, 25 cm at 3 m.
+const DISPARITY_SIGMA_PX: f64 = PIXEL_SIGMA_PX * std::f64::consts::SQRT_2;
+
+/// One standard deviation of a depth `z` (metres) of the frame `f`'s keypoints: its stereo rig's
+/// when the depths came from a stereo pair, else a depth sensor's.
+fn depth_sigma(f: &Features, z: f64) -> f64 {
+    if f.stereo_depth() {
+        DISPARITY_SIGMA_PX * z * z / f64::from(f.stereo_focal_baseline)
+    } else {
+        DEPTH_SIGMA_PER_M * z * z
+    }
+}
 /// What neither accounts for (depth-to-colour registration, calibration, rolling shutter), added
 /// to every metric pose's covariance as a floor: one standard deviation per axis of translation
 /// (metres) and of rotation (degrees). Fitted on the tum-desk RGB-D loops (the per-axis RMS of
@@ -437,7 +451,8 @@ pub fn metric_pose(
     if p.iter().any(|v| !v.is_finite()) {
         return Ok(None);
     }
-    let Some(cov_p) = pnp_covariance(&obj_in, &img_in, &kmat, &rvec, &tvec)? else { return Ok(None) };
+    let sigma_z = |z: f64| depth_sigma(from, z);
+    let Some(cov_p) = pnp_covariance(&obj_in, &img_in, &kmat, &rvec, &tvec, sigma_z)? else { return Ok(None) };
     // The pose as an edge measures it (T_query_candidate), from PnP's parameters.
     let edge = |p: &[f64; 6]| {
         let t = pnp_transform(p);
@@ -490,13 +505,14 @@ fn pnp_transform(p: &[f64; 6]) -> nalgebra::Isometry3<f64> {
 /// the residuals' variance factor where that exceeds 1; None when it is singular. Each point's
 /// residual covariance Wᵢ⁻¹ is its pixel noise plus its depth noise carried into the image:
 /// σₚ²I + σ_z² (∂π/∂X · dX/dz)(∂π/∂X · dX/dz)ᵀ, where X = z·ray is the lifted point, ∂π/∂X is
-/// `projectPoints`' Jacobian in tvec times R (Rodrigues), and σ_z = `DEPTH_SIGMA_PER_M`·z².
+/// `projectPoints`' Jacobian in tvec times R (Rodrigues), and σ_z = `sigma_z(z)` (`depth_sigma`).
 fn pnp_covariance(
     obj: &Vector<core::Point3f>,
     img: &Vector<Point2f>,
     kmat: &Mat,
     rvec: &Mat,
     tvec: &Mat,
+    sigma_z: impl Fn(f64) -> f64,
 ) -> opencv::Result<Option<nalgebra::Matrix6<f64>>> {
     let (mut projected, mut jac) = (Vector::<Point2f>::new(), Mat::default());
     calib3d::project_points(obj, rvec, tvec, kmat, &core::no_array(), &mut projected, &mut jac, 0.0)?;
@@ -526,8 +542,7 @@ fn pnp_covariance(
         let z = (x.z as f64).max(1e-6);
         let ray = nalgebra::Vector3::new(x.x as f64 / z, x.y as f64 / z, 1.0);
         let along = j.fixed_view::<2, 3>(0, 3) * (r * ray);
-        let sigma_z = DEPTH_SIGMA_PER_M * z * z;
-        let c = nalgebra::Matrix2::identity() * PIXEL_SIGMA_PX.powi(2) + along * along.transpose() * sigma_z.powi(2);
+        let c = nalgebra::Matrix2::identity() * PIXEL_SIGMA_PX.powi(2) + along * along.transpose() * sigma_z(z).powi(2);
         let Some(w) = c.try_inverse() else { return Ok(None) };
         let e = nalgebra::Vector2::new((pr.x - ob.x) as f64, (pr.y - ob.y) as f64);
         chi2 += (e.transpose() * w * e)[(0, 0)];

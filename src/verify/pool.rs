@@ -2,7 +2,7 @@
 //! request executor nor on the model thread.
 use super::depth::DepthImage;
 use super::error::VerifyError;
-use super::features::{from_image_bytes, FeatureParams, Features};
+use super::features::{from_image_bytes, FeatureParams, Features, STEREO_BYTES};
 use super::{Checks, LoopMatch};
 use crate::index::query::Match;
 use crate::model::preprocess::ImageLimits;
@@ -75,7 +75,9 @@ impl Verifier {
         self.extracted.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let mut f = self.run(move || from_image_bytes(&image, &limits, &cfg.features)).await??;
         let bytes = f.descriptor_bytes;
-        let fit = self.cfg.max_feature_bytes.saturating_sub(Features::encoded_len_of(0, bytes, depth))
+        // A stereo frame's record ends with its rig's focal length times baseline.
+        let fixed = Features::encoded_len_of(0, bytes, depth) + if depth { STEREO_BYTES } else { 0 };
+        let fit = self.cfg.max_feature_bytes.saturating_sub(fixed)
             / (Features::encoded_len_of(1, bytes, depth) - Features::encoded_len_of(0, bytes, depth)).max(1);
         f.truncate(fit);
         Ok(f)

@@ -126,6 +126,11 @@ impl StereoRig {
         self.baseline
     }
 
+    /// The rectified focal length (pixels).
+    pub fn focal(&self) -> f64 {
+        self.f
+    }
+
     fn rectify_points(&self, f: &Features, k: &Intrinsics, r: &Mat, p: &Mat) -> opencv::Result<Vec<[f32; 2]>> {
         let pts: Vector<Point2f> = f.points.iter().map(|p| Point2f::new(p[0], p[1])).collect();
         if pts.is_empty() {
@@ -200,6 +205,7 @@ impl StereoRig {
             )));
         }
         left.depths = self.depths(left, right)?;
+        left.stereo_focal_baseline = (self.f * self.baseline) as f32;
         Ok(())
     }
 }

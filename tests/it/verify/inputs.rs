@@ -36,6 +36,7 @@ fn fake(n: usize) -> Features {
         descriptors: (0..n).map(|i| [i as u8; 32]).collect(),
         descriptor_bytes: 32,
         depths: Vec::new(),
+        stereo_focal_baseline: 0.0,
     }
 }
 
