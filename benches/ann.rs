@@ -21,8 +21,9 @@
 //!      LOOPD_BENCH_ROW_DIMS (the rows' values: the first ones of each real row, renormalised,
 //!      which is the PCA reduction of the model's whitened output; default all 1,712),
 //!      LOOPD_BENCH_ROWS_RESIDENT_MB (the approximate index's rows are in a mapped file, as the
-//!      server keeps them, with this resident bound, also the sealed parts'; default the
-//!      server's, 1024),
+//!      server keeps them, with this resident bound; default the server's, 1024),
+//!      LOOPD_BENCH_SEALED_RESIDENT_MB (the sealed graph parts' resident bound; default the
+//!      rows' bound, as the server's `--approx-sealed-resident-mb`),
 //!      LOOPD_BENCH_SEAL (comma-separated: the graph is built once per value, sealed into mapped
 //!      parts of that many rows as the store's indexer does; 0: one graph in memory; default "0")
 //!
@@ -79,13 +80,13 @@ fn build(
     real: &[Vec<f32>],
     n: usize,
     dir: &Path,
-    resident: usize,
+    (resident, sealed_resident): (usize, usize),
     seal_rows: usize,
     keep: bool,
 ) -> (SessionIndex, Vec<f32>) {
     let dim = real[0].len();
     let mut index = SessionIndex::with_rows(dim, Storage::F16, Some(Mapping { dir, resident }));
-    index.set_index(IndexKind::Approximate, GraphParams { seal_rows, sealed_resident: resident, ..params() });
+    index.set_index(IndexKind::Approximate, GraphParams { seal_rows, sealed_resident, ..params() });
     let mut kept = Vec::with_capacity(if keep { n * dim } else { 0 });
     let bar = ProgressBar::new(n as u64)
         .with_style(ProgressStyle::with_template("  adding {pos}/{len} {wide_bar} {eta}").expect("template"));
@@ -297,13 +298,17 @@ fn main() -> anyhow::Result<()> {
     let seals: Vec<usize> =
         env("LOOPD_BENCH_SEAL", "0").split(',').map(|s| s.trim().parse()).collect::<Result<_, _>>()?;
     let resident: usize = env("LOOPD_BENCH_ROWS_RESIDENT_MB", "1024").parse::<usize>()? << 20;
+    let sealed_resident: usize = match std::env::var("LOOPD_BENCH_SEALED_RESIDENT_MB") {
+        Ok(v) => v.parse::<usize>()? << 20,
+        Err(_) => resident,
+    };
     let mut sweep = Vec::new();
     for &n in &sizes {
         for (s, &seal) in seals.iter().enumerate() {
             let rows_dir = tempfile::tempdir_in(root().join("target"))?;
             let parts_dir = rows_dir.path().join("graph.parts");
             let with_faiss = n <= faiss_max && s + 1 == seals.len();
-            let (mut approx, flat) = build(&real, n, rows_dir.path(), resident, seal, with_faiss);
+            let (mut approx, flat) = build(&real, n, rows_dir.path(), (resident, sealed_resident), seal, with_faiss);
             let t = Instant::now();
             index_all(&approx, &parts_dir)?;
             let rate = n as f64 / t.elapsed().as_secs_f64();

@@ -108,6 +108,7 @@ fn main() -> anyhow::Result<()> {
                 thumbnails: false,
                 // What a session this large uses (`auto` switches at 200,000 frames).
                 index: loopd::index::graph::IndexKind::Approximate,
+                model: None,
             };
             store.create_session(Some(ID.into()), new).await?;
             let s = store.session(ID)?;

@@ -205,6 +205,7 @@ fn store_bench() -> anyhow::Result<()> {
                     camera: None,
                     thumbnails: false,
                     index: loopd::index::graph::IndexKind::Exact,
+                    model: None,
                 },
             )
             .await?;

@@ -41,6 +41,7 @@ pub fn meta(id: &str) -> SessionMeta {
         camera: None,
         thumbnails: false,
         index: Default::default(),
+        model: None,
     }
 }
 
@@ -56,5 +57,6 @@ pub fn new_session(id: &str) -> NewSession {
         camera: m.camera,
         thumbnails: m.thumbnails,
         index: m.index,
+        model: m.model.clone(),
     }
 }

@@ -3,7 +3,7 @@
 //! connections, the loops not kept), encoded as OpenMetrics text on each scrape.
 use super::conn::Connections;
 use crate::auth::Auth;
-use crate::engine::metrics::EngineMetrics;
+use crate::engine::metrics::ModelMetrics;
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
 use prometheus_client::metrics::counter::ConstCounter;
@@ -24,14 +24,14 @@ impl Collector for Count {
 
 /// The server's registry.
 pub fn registry(
-    engine: Arc<EngineMetrics>,
+    engines: ModelMetrics,
     auth: Arc<Auth>,
     connections: Arc<Connections>,
     loops_not_kept: Arc<AtomicU64>,
     features_extracted: Arc<AtomicU64>,
 ) -> Registry {
     let mut r = Registry::default();
-    r.register_collector(Box::new(engine));
+    r.register_collector(Box::new(engines));
     r.register_collector(Box::new(auth));
     r.register_collector(Box::new(connections));
     r.register_collector(Box::new(Count(

@@ -7,8 +7,10 @@ use super::service::LoopService;
 use super::tls::{Conn, Tls, TlsFiles};
 use super::watch::{follow_cluster, follow_members, watch_storage};
 use crate::auth::{Auth, AuthConfig};
+use crate::engine::metrics::ModelMetrics;
 use crate::engine::{Engine, EngineConfig};
 use crate::model::preprocess::ImageLimits;
+use crate::model::served::{load_dir as load_models, Net, Served};
 use crate::model::Model;
 use crate::pb;
 use crate::store::pg::{LogConfig, Replication};
@@ -58,6 +60,11 @@ pub struct ServerConfig {
     pub tls: Option<TlsFiles>,
     /// Sessions and frames in a cluster's replicated log instead of `data_dir` alone.
     pub cluster: Option<ClusterConfig>,
+    /// The built-in model's name among the served models (`--model-name`).
+    pub model_name: String,
+    /// A folder of TorchScript models served beside the built-in one, one subfolder each
+    /// (`--models`; docs/models.md).
+    pub models_dir: Option<PathBuf>,
 }
 
 /// `serve --cluster`: the log's PostgreSQL URL and this node's connections to it.
@@ -161,6 +168,8 @@ impl ServerConfig {
             insecure: false,
             tls: None,
             cluster: None,
+            model_name: crate::model::served::BUILTIN_NAME.into(),
+            models_dir: None,
         }
     }
 }
@@ -207,7 +216,27 @@ impl RunningServer {
                 store
             }
         });
-        let engine = Engine::start(model, cfg.engine.clone(), cfg.limits)?;
+        let device = model.device;
+        crate::model::script::check_name(&cfg.model_name).context("--model-name")?;
+        let builtin = Served { name: cfg.model_name.clone(), net: Net::Builtin(Box::new(model)) };
+        let mut models = vec![Engine::start(builtin, cfg.engine.clone(), cfg.limits)?];
+        if let Some(dir) = &cfg.models_dir {
+            for m in load_models(dir, device)? {
+                if let Some(same) = models.iter().find(|e| e.info().name == m.name) {
+                    anyhow::bail!(
+                        "{}: two models are named '{}' (the other: {}); names must differ",
+                        dir.display(),
+                        m.name,
+                        same.info().descriptor_id
+                    );
+                }
+                let engine = Engine::start(m, cfg.engine.clone(), cfg.limits)?;
+                let i = engine.info();
+                tracing::info!(model = %i.name, descriptor_id = %i.descriptor_id, dim = i.dim, "serving a TorchScript model");
+                models.push(engine);
+            }
+        }
+        let engine = models[0].clone();
         let calibrator = cfg.calibration.resolve(&engine.info().descriptor_id)?;
         if let Some(c) = &calibrator {
             tracing::info!(descriptor_id = %c.descriptor_id, loop_confidence = c.loop_confidence, "calibrated confidence");
@@ -247,7 +276,7 @@ impl RunningServer {
                             write and delete every session"
             );
         }
-        let service = LoopService::new(engine, store, cfg.verify.clone(), calibrator);
+        let service = LoopService::with_models(models, store, cfg.verify.clone(), calibrator);
         let jobs = Arc::new(super::jobs::Jobs::new(cfg.max_jobs, cfg.max_jobs_per_tenant, service.store.clone()));
         let (shutdown, rx) = tokio::sync::watch::channel(false);
         if let Some(c) = &cfg.cluster {
@@ -273,7 +302,7 @@ impl RunningServer {
 
         let connections = Arc::new(Connections::new(cfg.connections.max_connections));
         let metrics = Arc::new(super::metrics::registry(
-            service.engine.metrics().clone(),
+            ModelMetrics(service.models.iter().map(|e| (e.info().name.clone(), e.metrics().clone())).collect()),
             auth.clone(),
             connections.clone(),
             service.loops_not_kept.clone(),

@@ -169,8 +169,13 @@ impl Scoped<'_> {
     }
 
     /// An image's descriptor (no session), in the caller's lane of the model.
-    pub async fn embed(&self, image: bytes::Bytes, variant: Variant) -> Result<(String, Vec<f32>), ApiError> {
-        in_lane(self.lane(), self.service.embed(image, variant)).await
+    pub async fn embed(
+        &self,
+        image: bytes::Bytes,
+        variant: Variant,
+        model: Option<&str>,
+    ) -> Result<(String, Vec<f32>), ApiError> {
+        in_lane(self.lane(), self.service.embed(image, variant, model)).await
     }
 
     pub async fn add_frame(&self, session: &str, f: FrameInput) -> Result<u64, ApiError> {

@@ -67,7 +67,7 @@ fn check(dir: PathBuf, images: Vec<PathBuf>, device: &str, save: Option<PathBuf>
         if m.normalized && (norm - 1.0).abs() > 1e-3 {
             bail!("{}: the manifest says the output is normalised, but its norm is {norm:.6}", path.display());
         }
-        let d = model.descriptors(std::slice::from_ref(&input))?;
+        let d = model.unit(&raw)?;
         let unit = f64::try_from(d.norm())?;
         if (unit - 1.0).abs() > 1e-4 {
             bail!("{}: the normalised descriptor has norm {unit}", path.display());

@@ -28,6 +28,13 @@ pub struct ServeArgs {
     /// Where map sessions live (sled database).
     #[arg(long, env = "LOOPD_DATA_DIR", default_value = "data")]
     pub data_dir: PathBuf,
+    /// A model repository: each subfolder a TorchScript model (`model.json` and its file,
+    /// docs/models.md) served beside the built-in one; sessions name theirs (`model`).
+    #[arg(long, env = "LOOPD_MODELS")]
+    pub models: Option<PathBuf>,
+    /// The built-in model's name among the served models (sessions created without `model` get it).
+    #[arg(long, env = "LOOPD_MODEL_NAME", default_value = crate::model::served::BUILTIN_NAME)]
+    pub model_name: String,
     /// Most images per forward pass.
     #[arg(long, env = "LOOPD_MAX_BATCH", default_value_t = 32)]
     pub max_batch: usize,
@@ -100,10 +107,14 @@ pub struct ServeArgs {
     pub approx_seal_frames: usize,
     /// Each session's descriptors live in a file under `<data-dir>/rows/` mapped into memory,
     /// and the server keeps at most this many MiB of each session's rows in its own memory
-    /// (the rest is the kernel's page cache, dropped under pressure; docs/storage.md); the same
-    /// bound applies to each session's sealed graph parts (`--approx-seal-frames`).
+    /// (the rest is the kernel's page cache, dropped under pressure; docs/storage.md).
     #[arg(long, env = "LOOPD_ROWS_RESIDENT_MB", default_value_t = (crate::store::ROWS_RESIDENT >> 20) as u64)]
     pub rows_resident_mb: u64,
+    /// MiB of each session's sealed graph parts (`--approx-seal-frames`) the server keeps mapped
+    /// in before it releases them (default: `--rows-resident-mb`). A search visits nodes all over
+    /// its parts: below their size, queries pay page faults (docs/performance.md).
+    #[arg(long, env = "LOOPD_APPROX_SEALED_RESIDENT_MB")]
+    pub approx_sealed_resident_mb: Option<u64>,
     /// Keep every session's descriptors in the server's own memory instead (no row files; the
     /// process's memory grows with the maps).
     #[arg(long, env = "LOOPD_ROWS_IN_MEMORY")]
@@ -233,7 +244,8 @@ impl ServeArgs {
                 exact_share: self.approx_exact_share.clamp(0.0, 1.0),
                 save_rows: self.approx_save_frames.max(1),
                 seal_rows: self.approx_seal_frames,
-                sealed_resident: (self.rows_resident_mb as usize).saturating_mul(1 << 20),
+                sealed_resident: (self.approx_sealed_resident_mb.unwrap_or(self.rows_resident_mb) as usize)
+                    .saturating_mul(1 << 20),
                 ..defaults.graph
             },
             rows_resident: (!self.rows_in_memory).then_some((self.rows_resident_mb as usize).saturating_mul(1 << 20)),
@@ -305,6 +317,8 @@ impl ServeArgs {
                 max_connections: self.max_connections.max(1),
             },
             calibration: self.model.calibration(),
+            model_name: self.model_name.clone(),
+            models_dir: self.models.clone(),
             verify: {
                 let defaults = VerifyConfig::default();
                 VerifyConfig {

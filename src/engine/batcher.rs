@@ -13,7 +13,8 @@
 use super::metrics::EngineMetrics;
 use super::{EngineConfig, EngineError, Lane};
 use crate::model::network::Variant;
-use crate::model::{rows, Model};
+use crate::model::rows;
+use crate::model::served::Served;
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::mpsc::{Receiver, RecvTimeoutError, TryRecvError};
@@ -129,7 +130,7 @@ impl Sharing {
     }
 }
 
-pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: std::sync::Arc<EngineMetrics>) {
+pub(super) fn run(model: Served, rx: Receiver<Job>, cfg: EngineConfig, metrics: std::sync::Arc<EngineMetrics>) {
     let mut fair = Fair::default();
     let mut sharing = Sharing { seen: HashMap::new(), per_image: 0.0 };
     let bucket_max = if cfg.batch_buckets == Some(true) { Some(cfg.max_batch) } else { None };
@@ -186,7 +187,7 @@ pub(super) fn run(model: Model, rx: Receiver<Job>, cfg: EngineConfig, metrics: s
 
 /// `bucket_max`: pad the batch with zero inputs up to its bucket (`super::buckets`); the padded
 /// rows' descriptors are dropped (each row of a forward pass depends on its own input alone).
-fn forward(model: &Model, group: Vec<Job>, variant: Variant, metrics: &EngineMetrics, bucket_max: Option<usize>) {
+fn forward(model: &Served, group: Vec<Job>, variant: Variant, metrics: &EngineMetrics, bucket_max: Option<usize>) {
     let start = Instant::now();
     for j in &group {
         metrics.queue_wait.observe(start.duration_since(j.admitted).as_secs_f64());

@@ -1,7 +1,7 @@
 //! Lock-free counters and histograms of the engine, encoded for `/metrics` by prometheus-client
 //! (the engine's metrics are one `Collector`).
 use prometheus_client::collector::Collector;
-use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric, NoLabelSet};
+use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric, MetricEncoder, NoLabelSet};
 use prometheus_client::metrics::counter::ConstCounter;
 use prometheus_client::metrics::gauge::ConstGauge;
 use prometheus_client::metrics::MetricType;
@@ -48,17 +48,16 @@ impl Histogram {
     }
 
     fn encode(&self, encoder: &mut DescriptorEncoder, name: &str, help: &str) -> std::fmt::Result {
+        self.encode_into(encoder.encode_descriptor(name, help, None, MetricType::Histogram)?)
+    }
+
+    fn encode_into(&self, mut metric: MetricEncoder) -> std::fmt::Result {
         // prometheus-client takes each bucket's own count (it sums them) and f64::MAX as +Inf.
         let mut buckets: Vec<(f64, u64)> =
             self.counts.iter().zip(self.bounds).map(|(c, &b)| (b, c.load(Relaxed))).collect();
         let counted: u64 = buckets.iter().map(|(_, n)| n).sum();
         buckets.push((f64::MAX, self.count().saturating_sub(counted)));
-        encoder.encode_descriptor(name, help, None, MetricType::Histogram)?.encode_histogram::<NoLabelSet>(
-            self.sum(),
-            self.count(),
-            &buckets,
-            None,
-        )
+        metric.encode_histogram::<NoLabelSet>(self.sum(), self.count(), &buckets, None)
     }
 }
 
@@ -101,9 +100,10 @@ impl Default for EngineMetrics {
     }
 }
 
-impl Collector for EngineMetrics {
-    fn encode(&self, mut encoder: DescriptorEncoder) -> std::fmt::Result {
-        for (name, help, v) in [
+impl EngineMetrics {
+    /// The counters: name, help, value.
+    fn counters(&self) -> [(&'static str, &'static str, &AtomicU64); 6] {
+        [
             ("loopd_engine_images", "Images embedded.", &self.images),
             ("loopd_engine_padded", "Zero inputs that filled batches up to their bucket size.", &self.padded),
             (
@@ -114,27 +114,72 @@ impl Collector for EngineMetrics {
             ("loopd_engine_rejected", "Requests refused: queue full.", &self.rejected_overload),
             ("loopd_engine_cancelled", "Requests dropped by their caller before the forward pass.", &self.cancelled),
             ("loopd_engine_failed", "Requests whose forward pass failed.", &self.failed),
-        ] {
+        ]
+    }
+
+    fn rate(&self) -> f64 {
+        self.images.load(Relaxed) as f64 / self.started.elapsed().as_secs_f64().max(1e-9)
+    }
+
+    /// The histograms: name, help, histogram.
+    fn histograms(&self) -> [(&'static str, &'static str, &Histogram); 3] {
+        [
+            ("loopd_engine_batch_size", "Images per forward pass.", &self.batch_size),
+            ("loopd_engine_queue_wait_seconds", "Admission to forward pass start.", &self.queue_wait),
+            ("loopd_engine_forward_seconds", "Forward pass duration.", &self.forward_seconds),
+        ]
+    }
+}
+
+const QUEUE_DEPTH: (&str, &str) = ("loopd_engine_queue_depth", "Requests admitted and not yet answered.");
+const RATE: (&str, &str) = ("loopd_engine_images_per_second", "Images embedded per second since start.");
+
+/// The engines of several served models (`serve --models`): each family once, a series per
+/// model labelled `model="<name>"`.
+#[derive(Debug)]
+pub struct ModelMetrics(pub Vec<(String, std::sync::Arc<EngineMetrics>)>);
+
+impl Collector for ModelMetrics {
+    fn encode(&self, mut encoder: DescriptorEncoder) -> std::fmt::Result {
+        let Some((_, first)) = self.0.first() else { return Ok(()) };
+        let label = |model: &str| [("model".to_string(), model.to_string())];
+        for (i, (name, help, _)) in first.counters().into_iter().enumerate() {
+            let mut family = encoder.encode_descriptor(name, help, None, MetricType::Counter)?;
+            for (model, m) in &self.0 {
+                ConstCounter::new(m.counters()[i].2.load(Relaxed)).encode(family.encode_family(&label(model))?)?;
+            }
+        }
+        let mut family = encoder.encode_descriptor(QUEUE_DEPTH.0, QUEUE_DEPTH.1, None, MetricType::Gauge)?;
+        for (model, m) in &self.0 {
+            ConstGauge::new(m.queued.load(Relaxed) as i64).encode(family.encode_family(&label(model))?)?;
+        }
+        let mut family = encoder.encode_descriptor(RATE.0, RATE.1, None, MetricType::Gauge)?;
+        for (model, m) in &self.0 {
+            ConstGauge::new(m.rate()).encode(family.encode_family(&label(model))?)?;
+        }
+        for (i, (name, help, _)) in first.histograms().into_iter().enumerate() {
+            let mut family = encoder.encode_descriptor(name, help, None, MetricType::Histogram)?;
+            for (model, m) in &self.0 {
+                m.histograms()[i].2.encode_into(family.encode_family(&label(model))?)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Collector for EngineMetrics {
+    fn encode(&self, mut encoder: DescriptorEncoder) -> std::fmt::Result {
+        for (name, help, v) in self.counters() {
             let counter = ConstCounter::new(v.load(Relaxed));
             counter.encode(encoder.encode_descriptor(name, help, None, counter.metric_type())?)?;
         }
         let queued = ConstGauge::new(self.queued.load(Relaxed) as i64);
-        queued.encode(encoder.encode_descriptor(
-            "loopd_engine_queue_depth",
-            "Requests admitted and not yet answered.",
-            None,
-            queued.metric_type(),
-        )?)?;
-        let rate = self.images.load(Relaxed) as f64 / self.started.elapsed().as_secs_f64().max(1e-9);
-        let rate = ConstGauge::new(rate);
-        rate.encode(encoder.encode_descriptor(
-            "loopd_engine_images_per_second",
-            "Images embedded per second since start.",
-            None,
-            rate.metric_type(),
-        )?)?;
-        self.batch_size.encode(&mut encoder, "loopd_engine_batch_size", "Images per forward pass.")?;
-        self.queue_wait.encode(&mut encoder, "loopd_engine_queue_wait_seconds", "Admission to forward pass start.")?;
-        self.forward_seconds.encode(&mut encoder, "loopd_engine_forward_seconds", "Forward pass duration.")
+        queued.encode(encoder.encode_descriptor(QUEUE_DEPTH.0, QUEUE_DEPTH.1, None, queued.metric_type())?)?;
+        let rate = ConstGauge::new(self.rate());
+        rate.encode(encoder.encode_descriptor(RATE.0, RATE.1, None, rate.metric_type())?)?;
+        for (name, help, h) in self.histograms() {
+            h.encode(&mut encoder, name, help)?;
+        }
+        Ok(())
     }
 }

@@ -6,11 +6,9 @@
 mod batcher;
 pub mod metrics;
 
-use crate::model::config::Preprocess;
-use crate::model::device::device_name;
 use crate::model::network::Variant;
-use crate::model::preprocess::{prepare, ImageError, ImageLimits};
-use crate::model::Model;
+use crate::model::preprocess::{ImageError, ImageLimits};
+use crate::model::served::{About, InputSpec, Served};
 use batcher::Job;
 use metrics::EngineMetrics;
 use std::sync::atomic::Ordering::Relaxed;
@@ -119,6 +117,9 @@ pub struct Engine {
 /// What the engine computes, for clients and stored sessions.
 #[derive(Debug, Clone)]
 pub struct EngineInfo {
+    /// The model's name in the server (sessions name it: `model`).
+    pub name: String,
+    pub about: About,
     /// The descriptor space of the full network (what sessions store).
     pub descriptor_id: String,
     /// Each ablation variant's descriptor space.
@@ -128,7 +129,7 @@ pub struct EngineInfo {
     pub earlier_ids: Vec<String>,
     /// Length of the descriptors (2048, or a whitening's output size).
     pub dim: usize,
-    pub preprocess: Preprocess,
+    pub input: InputSpec,
     pub limits: ImageLimits,
     pub device: String,
     pub dtype: String,
@@ -155,9 +156,9 @@ pub fn buckets(max_batch: usize) -> Vec<usize> {
 
 /// One forward pass at each batch size that will run (every bucket, or batch 1 and `max_batch`)
 /// on zeros: first-call allocations, kernels and cuDNN's plans for those shapes.
-fn warm_up(model: &Model, max_batch: usize, buckets: bool) -> anyhow::Result<()> {
-    let p = &model.config.preprocess;
-    let input = Tensor::zeros([3, p.height as i64, p.width as i64], tch::kind::FLOAT_CPU);
+fn warm_up(model: &Served, max_batch: usize, buckets: bool) -> anyhow::Result<()> {
+    let (width, height) = model.input().size();
+    let input = Tensor::zeros([3, height as i64, width as i64], tch::kind::FLOAT_CPU);
     let sizes = if buckets { self::buckets(max_batch) } else { vec![1, max_batch] };
     for n in sizes {
         let batch: Vec<Tensor> = (0..n).map(|_| input.shallow_clone()).collect();
@@ -172,6 +173,11 @@ impl EngineInfo {
         self.variant_ids.iter().find(|(v, _)| *v == variant).map_or(&self.descriptor_id, |(_, id)| id)
     }
 
+    /// Whether it computes `variant` (a TorchScript model computes its whole output only).
+    pub fn has_variant(&self, variant: Variant) -> bool {
+        self.variant_ids.iter().any(|(v, _)| *v == variant)
+    }
+
     /// Whether a session of descriptor space `id` may take this engine's (full network) descriptors.
     pub fn compatible(&self, id: &str) -> bool {
         id == self.descriptor_id || self.earlier_ids.iter().any(|e| e == id)
@@ -180,22 +186,26 @@ impl EngineInfo {
 
 impl Engine {
     /// Moves the model onto its own thread and warms it up there (if asked for).
-    pub fn start(model: Model, cfg: EngineConfig, limits: ImageLimits) -> anyhow::Result<Self> {
+    /// One engine per served model: its own queue, batches, metrics and model thread.
+    pub fn start(model: impl Into<Served>, cfg: EngineConfig, limits: ImageLimits) -> anyhow::Result<Self> {
+        let model: Served = model.into();
         let cfg = EngineConfig {
             max_batch: cfg.max_batch.max(1),
             queue_capacity: cfg.queue_capacity.max(1),
-            batch_buckets: Some(cfg.batch_buckets.unwrap_or(model.device.is_cuda())),
+            batch_buckets: Some(cfg.batch_buckets.unwrap_or(model.device().is_cuda())),
             ..cfg
         };
         let info = Arc::new(EngineInfo {
+            name: model.name.clone(),
+            about: model.about(),
             descriptor_id: model.descriptor_id(Variant::FULL),
-            variant_ids: Variant::ALL.iter().map(|&v| (v, model.descriptor_id(v))).collect(),
+            variant_ids: model.variants().into_iter().map(|v| (v, model.descriptor_id(v))).collect(),
             earlier_ids: model.earlier_descriptor_ids(),
-            dim: model.dim() as usize,
-            preprocess: model.config.preprocess.clone(),
+            dim: model.dim(),
+            input: model.input(),
             limits,
-            device: device_name(model.device),
-            dtype: format!("{:?}", model.dtype).to_lowercase(),
+            device: model.device_name(),
+            dtype: model.dtype(),
         });
         // The channel never fills before admission refuses: admission bounds it.
         let (tx, rx) = mpsc::sync_channel(cfg.queue_capacity);
@@ -203,7 +213,7 @@ impl Engine {
         let (m, c) = (metrics.clone(), cfg.clone());
         let (ready_tx, ready_rx) = mpsc::sync_channel(1);
         let device = info.device.clone();
-        std::thread::Builder::new().name("loopd-model".into()).spawn(move || {
+        std::thread::Builder::new().name(format!("loopd-model-{}", info.name)).spawn(move || {
             // Warm up on the thread that will run every forward pass: its thread pool (OpenMP
             // team) and allocator caches are the ones that get used.
             let t = Instant::now();
@@ -264,8 +274,8 @@ impl Engine {
         let admitted = Instant::now();
         let input = {
             let _permit = self.decode.acquire().await.map_err(|_| EngineError::Stopped)?;
-            let (limits, pre) = (self.info.limits, self.info.preprocess.clone());
-            tokio::task::spawn_blocking(move || prepare(&bytes, &limits, &pre))
+            let (limits, input) = (self.info.limits, self.info.input.clone());
+            tokio::task::spawn_blocking(move || input.prepare(&bytes, &limits))
                 .await
                 .map_err(|e| EngineError::Inference(format!("decoder worker failed: {e}")))??
         };

@@ -9,6 +9,7 @@ pub mod labels;
 pub mod network;
 pub mod preprocess;
 pub mod script;
+pub mod served;
 pub mod tfjs;
 pub mod weights;
 
@@ -183,15 +184,7 @@ impl Model {
     }
 
     fn batch(&self, inputs: &[Tensor]) -> Result<Tensor> {
-        if inputs.is_empty() {
-            bail!("empty batch");
-        }
-        let shape = inputs[0].size();
-        if inputs.iter().any(|t| t.size() != shape) {
-            bail!("inputs of one batch must share a size");
-        }
-        let x = Tensor::stack(inputs, 0).to_device(self.device).to_kind(self.dtype.kind());
-        Ok(channels_last(&x))
+        Ok(channels_last(&stack(inputs, self.device, self.dtype.kind())?))
     }
 
     /// Unit descriptors, [N, 2048] f32 on the CPU, for same-size preprocessed inputs.
@@ -212,6 +205,18 @@ impl Model {
         let x = self.batch(inputs)?;
         Ok(tch::no_grad(|| self.net.class_probabilities(&x)).to_kind(tch::Kind::Float).to_device(Device::Cpu))
     }
+}
+
+/// Same-size preprocessed inputs ([3, H, W]) as one batch [N, 3, H, W] on `device` in `kind`.
+pub(crate) fn stack(inputs: &[Tensor], device: Device, kind: tch::Kind) -> Result<Tensor> {
+    if inputs.is_empty() {
+        bail!("empty batch");
+    }
+    let shape = inputs[0].size();
+    if inputs.iter().any(|t| t.size() != shape) {
+        bail!("inputs of one batch must share a size");
+    }
+    Ok(Tensor::stack(inputs, 0).to_device(device).to_kind(kind))
 }
 
 /// Rows of a [N, D] CPU float tensor.

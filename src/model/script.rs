@@ -104,12 +104,7 @@ impl Manifest {
     }
 
     fn check(&self) -> Result<()> {
-        let name_ok = !self.name.is_empty()
-            && self.name.len() <= 64
-            && self.name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c));
-        if !name_ok {
-            bail!("name {:?}: 1 to 64 letters, digits, '-', '_' or '.'", self.name);
-        }
+        check_name(&self.name)?;
         let i = &self.input;
         if !(32..=MAX_SIDE).contains(&i.width) || !(32..=MAX_SIDE).contains(&i.height) {
             bail!("input {}x{}: each side must be 32 to {MAX_SIDE} pixels", i.width, i.height);
@@ -128,14 +123,40 @@ impl Manifest {
         }
         Ok(())
     }
+}
 
+/// A model's name in a server: 1 to 64 letters, digits, `-`, `_` or `.`.
+pub fn check_name(name: &str) -> Result<()> {
+    let ok =
+        !name.is_empty() && name.len() <= 64 && name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c));
+    if !ok {
+        bail!("model name {name:?}: 1 to 64 letters, digits, '-', '_' or '.'");
+    }
+    Ok(())
+}
+
+impl Input {
+    /// The built-in model's resizing of the same size (its normalisation is not used).
     fn preprocess(&self) -> Preprocess {
-        Preprocess {
-            width: self.input.width,
-            height: self.input.height,
-            resize: self.input.resize,
-            ..Default::default()
-        }
+        Preprocess { width: self.width, height: self.height, resize: self.resize, ..Default::default() }
+    }
+
+    /// The model's input for an image ([3, H, W] f32): resized as the built-in model resizes,
+    /// then in this channel order, scale, mean and std.
+    pub fn to_input(&self, img: &RgbImage) -> Tensor {
+        self.normalize(&self.resized(img))
+    }
+
+    /// The image resized for the model, RGB 0-255 ([3, H, W] f32), before normalisation.
+    pub fn resized(&self, img: &RgbImage) -> Tensor {
+        resized_rgb(img, &self.preprocess())
+    }
+
+    /// This normalisation of a resized RGB 0-255 [3, H, W] tensor.
+    pub fn normalize(&self, rgb: &Tensor) -> Tensor {
+        let x = if self.channels == Channels::Bgr { rgb.flip([0]) } else { rgb.shallow_clone() };
+        let column = |v: [f32; 3]| Tensor::from_slice(&v).reshape([3, 1, 1]);
+        (x * f64::from(self.scale) - column(self.mean)) / column(self.std)
     }
 }
 
@@ -174,36 +195,25 @@ impl ScriptModel {
         self.manifest.output_dim
     }
 
-    /// The model's input for an image ([3, H, W] f32): resized as the built-in model resizes,
-    /// then in the manifest's channel order, scale, mean and std.
+    /// The model's input for an image ([3, H, W] f32): see [`Input::to_input`].
     pub fn to_input(&self, img: &RgbImage) -> Tensor {
-        self.normalize(&self.resized(img))
+        self.manifest.input.to_input(img)
     }
 
     /// The image resized for the model, RGB 0-255 ([3, H, W] f32), before normalisation.
     pub fn resized(&self, img: &RgbImage) -> Tensor {
-        resized_rgb(img, &self.manifest.preprocess())
+        self.manifest.input.resized(img)
     }
 
     /// The manifest's normalisation of a resized RGB 0-255 [3, H, W] tensor.
     pub fn normalize(&self, rgb: &Tensor) -> Tensor {
-        let i = &self.manifest.input;
-        let x = if i.channels == Channels::Bgr { rgb.flip([0]) } else { rgb.shallow_clone() };
-        let column = |v: [f32; 3]| Tensor::from_slice(&v).reshape([3, 1, 1]);
-        (x * f64::from(i.scale) - column(i.mean)) / column(i.std)
+        self.manifest.input.normalize(rgb)
     }
 
     /// Raw model output for a batch of same-size inputs, [N, output_dim] f32 on the CPU, checked
     /// against the manifest (shape, finite values).
     pub fn forward(&self, inputs: &[Tensor]) -> Result<Tensor> {
-        if inputs.is_empty() {
-            bail!("empty batch");
-        }
-        let shape = inputs[0].size();
-        if inputs.iter().any(|t| t.size() != shape) {
-            bail!("inputs of one batch must share a size");
-        }
-        let x = Tensor::stack(inputs, 0).to_device(self.device).to_kind(Kind::Float);
+        let x = super::stack(inputs, self.device, Kind::Float)?;
         let out = tch::no_grad(|| self.module.forward_ts(&[x]))
             .with_context(|| format!("model {}: forward pass failed", self.manifest.name))?;
         let out = out.to_kind(Kind::Float).to_device(Device::Cpu);
@@ -224,11 +234,15 @@ impl ScriptModel {
 
     /// Unit descriptors ([N, output_dim] f32 on the CPU).
     pub fn descriptors(&self, inputs: &[Tensor]) -> Result<Tensor> {
-        let out = self.forward(inputs)?;
+        self.unit(&self.forward(inputs)?)
+    }
+
+    /// [`ScriptModel::forward`]'s output as unit descriptors (each row L2-normalised).
+    pub fn unit(&self, out: &Tensor) -> Result<Tensor> {
         let norm = out.norm_scalaropt_dim(2.0, [1i64].as_slice(), true);
         if !bool::try_from(norm.gt(1e-12).all())? {
             bail!("model {} returned an all-zero descriptor", self.manifest.name);
         }
-        Ok(&out / norm)
+        Ok(out / norm)
     }
 }

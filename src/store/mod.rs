@@ -84,6 +84,8 @@ pub struct NewSession {
     /// Keep a thumbnail of each frame (for the loop inspector).
     pub thumbnails: bool,
     pub index: crate::index::graph::IndexKind,
+    /// The served model's name (None: the server's default).
+    pub model: Option<String>,
 }
 
 /// What a session holds, for listings.

@@ -24,6 +24,10 @@ pub struct SessionMeta {
     /// How its frames are searched: exact, approximate, or auto (approximate once it is large).
     #[serde(default)]
     pub index: crate::index::graph::IndexKind,
+    /// The served model it was created with (`serve --models`; absent: the server's default
+    /// at the time). Its `descriptor_id` pins which model's descriptors it holds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
 }
 
 /// Pinhole intrinsics in pixels, with optional radial-tangential distortion (k1 k2 p1 p2 k3).

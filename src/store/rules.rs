@@ -39,7 +39,7 @@ pub fn robot_id_error(robot: &str) -> Option<&'static str> {
 
 /// A new session's metadata, its id checked (or picked by [`new_session_id`]).
 pub(super) fn new_meta(id: Option<String>, new: NewSession) -> Result<SessionMeta, StoreError> {
-    let NewSession { name, dim, descriptor_id, storage, default_query, camera, thumbnails, index } = new;
+    let NewSession { name, dim, descriptor_id, storage, default_query, camera, thumbnails, index, model } = new;
     if !(1..=65536).contains(&dim) {
         return Err(StoreError::InvalidArgument(format!("descriptor dimension {dim} out of range 1..=65536")));
     }
@@ -61,6 +61,7 @@ pub(super) fn new_meta(id: Option<String>, new: NewSession) -> Result<SessionMet
         camera,
         thumbnails,
         index,
+        model,
     })
 }
 

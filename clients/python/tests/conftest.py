@@ -42,8 +42,9 @@ def make_certs(d: pathlib.Path) -> None:
 class Server:
     """One loopd process; `restart()` SIGKILLs it and starts it again on the same ports and data."""
 
-    def __init__(self, root: pathlib.Path):
+    def __init__(self, root: pathlib.Path, extra: tuple = ()):
         self.root = root
+        self.extra = list(extra)
         make_certs(root)
         (root / "admin.key").write_text(ADMIN_KEY)
         self.http_port, self.grpc_port = free_port(), free_port()
@@ -65,7 +66,7 @@ class Server:
             [str(BIN), "serve", "--device", "cpu", "--data-dir", str(self.root / "data"),
              "--http-addr", f"127.0.0.1:{self.http_port}", "--grpc-addr", self.grpc,
              "--tls-cert", str(self.root / "server.pem"), "--tls-key", str(self.root / "server.key"),
-             "--admin-key-file", str(self.root / "admin.key"), "--max-batch", "8"],
+             "--admin-key-file", str(self.root / "admin.key"), "--max-batch", "8", *self.extra],
             stdout=log, stderr=log)
         if wait:
             self.wait_ready()

@@ -238,3 +238,41 @@ def test_stereo_frames_give_metric_loops(server):
         assert best.frame_id == 0 and v.verified and v.metric and len(v.covariance) == 36, v
         norm = (v.relative_pose.tx ** 2 + v.relative_pose.ty ** 2 + v.relative_pose.tz ** 2) ** 0.5
         assert abs(norm - 0.432) < 0.1, norm
+
+
+def test_sessions_name_their_model_among_the_served_ones(tmp_path):
+    """A server with `--models` (two TorchScript models exported here with the venv's torch):
+    `models()` lists them after the built-in one, sessions bound to each take images and find
+    their own frames, and a name the server does not serve is refused."""
+    import subprocess
+    import sys
+    from conftest import DATA, REPO
+    repo = tmp_path / "models"
+    subprocess.run([sys.executable, str(REPO / "tests/reference/script_models.py"), "export", str(tmp_path / "all")],
+                   check=True)
+    repo.mkdir()
+    for name in ("small-resnet", "small-bgr"):
+        (tmp_path / "all" / name).rename(repo / name)
+    (tmp_path / "server").mkdir()
+    server = Server(tmp_path / "server", extra=("--models", str(repo)))
+    try:
+        key = server.tenant("models")
+        with Client(server.grpc, key=key, ca=server.ca) as c:
+            models = c.models()
+            assert [(m.name, m.default, m.dim) for m in models][1:] == [("small-bgr", False, 256),
+                                                                         ("small-resnet", False, 512)]
+            assert models[0].default and models[0].kind == "builtin"
+            with pytest.raises(grpc.RpcError) as e:
+                c.create_session("x", model="netvlad")
+            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "small-resnet" in e.value.details()
+            images = [(DATA / p).read_bytes() for p in ("slambook2-ch11/1.png", "photos/dog.jpg", "photos/scream.jpg")]
+            for model in ("small-resnet", "small-bgr", ""):
+                s = c.create_session(f"s-{model or 'default'}", model=model)
+                assert s.model == (model or models[0].name)
+                assert s.descriptor_id == next(m.descriptor_id for m in models if m.name == s.model)
+                frames = [Frame(image=img, timestamp=float(i), frame_id=i) for i, img in enumerate(images)]
+                assert len(list(c.stream(s.id, "mapper", frames, query_options(verify=False)))) == 3
+                found = c.query(s.id, "visitor", image=images[1], options=query_options(k=1, verify=False))
+                assert found[0].frame_id == 1 and found[0].score > 0.999, found
+    finally:
+        server.stop()

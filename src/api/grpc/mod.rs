@@ -138,6 +138,7 @@ fn session_to_pb(i: SessionInfo) -> pb::Session {
             IndexKind::Approximate => pb::IndexKind::Approximate,
         } as i32,
         approximate_frames: i.approximate_frames.map(|n| n as u64),
+        model: i.meta.model.unwrap_or_default(),
     }
 }
 
@@ -252,6 +253,7 @@ impl pb::loopd_server::Loopd for GrpcApi {
             camera: camera(r.camera)?,
             thumbnails: r.thumbnails,
             index,
+            model: Some(r.model).filter(|m| !m.is_empty()),
         };
         Ok(Response::new(session_to_pb(self.service.scoped(caller).create_session(create).await?)))
     }
@@ -337,6 +339,36 @@ impl pb::loopd_server::Loopd for GrpcApi {
         let r = req.into_inner();
         let jpeg = self.service.scoped(caller).thumbnail(&r.session_id, r.frame_id).await?;
         Ok(Response::new(pb::Thumbnail { jpeg: jpeg.into() }))
+    }
+
+    async fn list_models(
+        &self,
+        req: Request<pb::ListModelsRequest>,
+    ) -> Result<Response<pb::ListModelsResponse>, Status> {
+        caller(&req)?;
+        let models = self
+            .service
+            .models
+            .iter()
+            .enumerate()
+            .map(|(n, e)| {
+                let i = e.info();
+                let (input_width, input_height) = i.input.size();
+                pb::Model {
+                    name: i.name.clone(),
+                    kind: i.about.kind.into(),
+                    default: n == 0,
+                    descriptor_id: i.descriptor_id.clone(),
+                    dim: i.dim as u32,
+                    input_width,
+                    input_height,
+                    device: i.device.clone(),
+                    license: i.about.license.clone(),
+                    source: i.about.source.clone(),
+                }
+            })
+            .collect();
+        Ok(Response::new(pb::ListModelsResponse { models }))
     }
 
     type StreamFramesStream = FrameStream;

@@ -37,6 +37,7 @@ fn routes(frame_body: usize, max_body_bytes: usize) -> OpenApiRouter<Arc<AppStat
         .routes(routes!(node::ready))
         .routes(routes!(node::metrics))
         .routes(routes!(node::info))
+        .routes(routes!(node::models))
         .routes(routes!(node::cluster))
         .routes(routes!(node::embed))
         .routes(routes!(sessions::create_session, sessions::list_sessions))

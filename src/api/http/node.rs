@@ -98,6 +98,60 @@ pub async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
     })
 }
 
+/// A model this server serves.
+#[derive(Serialize, utoipa::ToSchema)]
+pub struct ModelInfo {
+    /// Its name: sessions created with `model` set to it hold its descriptors.
+    name: String,
+    /// "builtin" or "torchscript".
+    kind: String,
+    /// The server's default model (sessions created without `model`).
+    default: bool,
+    descriptor_id: String,
+    dim: i64,
+    /// Input width and height in pixels (a "keep" resize fits the image inside them).
+    input_width: u32,
+    input_height: u32,
+    device: String,
+    license: String,
+    source: String,
+}
+
+/// Every model this server serves.
+#[derive(Serialize, utoipa::ToSchema)]
+pub struct ModelList {
+    models: Vec<ModelInfo>,
+}
+
+/// The served models (`serve --models`), the default first
+#[utoipa::path(
+    get, path = "/v1/models", tag = "node",
+    responses(
+        (status = 200, description = "The served models.", body = ModelList),
+        (status = 401, response = Unauthorized),
+    )
+)]
+pub async fn models(State(s): State<Arc<AppState>>) -> Json<ModelList> {
+    Json(ModelList { models: s.service.models.iter().enumerate().map(|(n, e)| model_info(e, n == 0)).collect() })
+}
+
+fn model_info(e: &crate::engine::Engine, default: bool) -> ModelInfo {
+    let i = e.info();
+    let (input_width, input_height) = i.input.size();
+    ModelInfo {
+        name: i.name.clone(),
+        kind: i.about.kind.into(),
+        default,
+        descriptor_id: i.descriptor_id.clone(),
+        dim: i.dim as i64,
+        input_width,
+        input_height,
+        device: i.device.clone(),
+        license: i.about.license.clone(),
+        source: i.about.source.clone(),
+    }
+}
+
 /// A cluster node's view: its name, the live members and the sessions it holds, each with whether it is one of its owners (admin key)
 #[utoipa::path(
     get, path = "/v1/cluster", tag = "node",
@@ -121,6 +175,8 @@ pub struct EmbedQuery {
     attention: Option<bool>,
     /// The layer1/layer4 fusion (default true).
     fusion: Option<bool>,
+    /// The served model (default: the server's default; `GET /v1/models`).
+    model: Option<String>,
 }
 
 /// The unit descriptor of an image.
@@ -151,6 +207,6 @@ pub async fn embed(
     let Query(q) = q.map_err(|e| ApiError::InvalidArgument(e.body_text()))?;
     let body = body.map_err(|e| ApiError::TooLarge(e.body_text()))?;
     let variant = Variant { attention: q.attention.unwrap_or(true), fusion: q.fusion.unwrap_or(true) };
-    let (descriptor_id, descriptor) = s.service.scoped(caller).embed(body, variant).await?;
+    let (descriptor_id, descriptor) = s.service.scoped(caller).embed(body, variant, q.model.as_deref()).await?;
     Ok(Json(EmbedResponse { descriptor_id, descriptor }))
 }

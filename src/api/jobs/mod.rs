@@ -240,11 +240,13 @@ async fn run(
     status: Arc<Mutex<JobStatus>>,
     quota: Option<Arc<Quota>>,
 ) {
-    let engine = service.engine.clone();
-    let width = engine.config().max_batch.max(1);
     // Held while the job runs: a cluster node drops a session it does not own once no one holds
     // it (owners.rs), and the job's frames go into it one by one.
     let held = service.store.session(&session).ok();
+    // The session's model embeds its frames (a session of no served model: the default's, and
+    // adding them refuses them).
+    let engine = held.as_ref().and_then(|s| service.engine_of(s).ok()).unwrap_or(&service.engine).clone();
+    let width = engine.config().max_batch.max(1);
     let thumbnails = held.as_ref().is_some_and(|s| s.meta.thumbnails);
     let camera = held.as_ref().and_then(|s| s.meta.camera);
     let limits = engine.info().limits;

@@ -25,7 +25,10 @@ use std::sync::Arc;
 
 #[derive(Clone)]
 pub struct LoopService {
+    /// The default model's engine (sessions created without `model` get its descriptors).
     pub engine: Engine,
+    /// Every served model's engine, the default first (`serve --models`).
+    pub models: Vec<Engine>,
     pub store: Arc<Store>,
     pub verifier: Verifier,
     /// The confidence of this server's descriptor space (None: answers carry none).
@@ -295,12 +298,26 @@ pub struct CreateSession {
     pub thumbnails: bool,
     /// How its frames are searched (default auto: exact until the session is large).
     pub index: IndexKind,
+    /// The served model whose descriptors it holds (None: the server's default).
+    pub model: Option<String>,
 }
 
 impl LoopService {
     pub fn new(engine: Engine, store: Arc<Store>, verify: VerifyConfig, calibrator: Option<Calibrator>) -> Self {
+        Self::with_models(vec![engine], store, verify, calibrator)
+    }
+
+    /// A service of several models' engines, the default first (at least one).
+    pub fn with_models(
+        models: Vec<Engine>,
+        store: Arc<Store>,
+        verify: VerifyConfig,
+        calibrator: Option<Calibrator>,
+    ) -> Self {
+        let engine = models.first().cloned().expect("a service serves at least one model");
         let service = Self {
             engine,
+            models,
             store,
             verifier: Verifier::new(verify),
             calibrator: calibrator.map(Arc::new),
@@ -310,19 +327,47 @@ impl LoopService {
         service
     }
 
-    /// Says at start which stored sessions this server's model cannot add to or query by image.
+    /// Says at start which stored sessions none of this server's models can add to or query by
+    /// image.
     fn report_foreign_sessions(&self) {
-        let info = self.engine.info();
         for s in self.store.list() {
-            if !info.compatible(&s.meta.descriptor_id) {
+            if self.model_of(&s.meta.descriptor_id).is_none() {
                 tracing::warn!(
                     session = %s.meta.id,
                     session_descriptor_id = %s.meta.descriptor_id,
-                    server_descriptor_id = %info.descriptor_id,
-                    "session was built by another model: its frames are kept, but images sent to it will be refused"
+                    served = %self.served_ids(),
+                    "session was built by a model this server does not serve: its frames are kept, but images \
+                     sent to it will be refused"
                 );
             }
         }
+    }
+
+    /// The served model whose descriptors a session of descriptor space `id` holds.
+    pub fn model_of(&self, id: &str) -> Option<&Engine> {
+        self.models.iter().find(|e| e.info().compatible(id))
+    }
+
+    /// The served model called `name` (None or empty: the default).
+    pub fn model_named(&self, name: Option<&str>) -> Result<&Engine, ApiError> {
+        match name.filter(|n| !n.is_empty()) {
+            None => Ok(&self.engine),
+            Some(n) => self.models.iter().find(|e| e.info().name == n).ok_or_else(|| {
+                ApiError::InvalidArgument(format!(
+                    "model '{n}' is not served here (served: {}; GET /v1/models)",
+                    self.models.iter().map(|e| e.info().name.as_str()).collect::<Vec<_>>().join(", ")
+                ))
+            }),
+        }
+    }
+
+    /// "name (descriptor id), ..." of the served models, for messages.
+    fn served_ids(&self) -> String {
+        self.models
+            .iter()
+            .map(|e| format!("{} ({})", e.info().name, e.info().descriptor_id))
+            .collect::<Vec<_>>()
+            .join(", ")
     }
 
     pub async fn create_session(&self, req: CreateSession) -> Result<SessionInfo, ApiError> {
@@ -338,20 +383,23 @@ impl LoopService {
                 return Err(ApiError::InvalidArgument(format!("camera: {e}")));
             }
         }
-        let descriptor_id = self.engine.info().descriptor_id.clone();
+        let model = self.model_named(req.model.as_deref())?;
+        let descriptor_id = model.info().descriptor_id.clone();
+        let dim = model.info().dim;
         let meta = self
             .store
             .create_session(
                 req.id.filter(|s| !s.is_empty()),
                 NewSession {
                     name: req.name,
-                    dim: self.engine.info().dim,
+                    dim,
                     descriptor_id,
                     storage: req.storage,
                     default_query: defaults,
                     camera: req.camera,
                     thumbnails: req.thumbnails,
                     index: req.index,
+                    model: Some(model.info().name.clone()),
                 },
             )
             .await?;
@@ -366,10 +414,23 @@ impl LoopService {
         Ok(self.store.delete_session(id).await?)
     }
 
-    /// An image's unit descriptor under `variant`, with the id of its descriptor space.
-    pub async fn embed(&self, image: Bytes, variant: Variant) -> Result<(String, Vec<f32>), ApiError> {
-        let descriptor = self.engine.embed_image(image, variant).await?;
-        Ok((self.engine.info().variant_id(variant).to_string(), descriptor))
+    /// An image's unit descriptor under `variant` of the model called `model` (None: the
+    /// default), with the id of its descriptor space.
+    pub async fn embed(
+        &self,
+        image: Bytes,
+        variant: Variant,
+        model: Option<&str>,
+    ) -> Result<(String, Vec<f32>), ApiError> {
+        let engine = self.model_named(model)?;
+        if !engine.info().has_variant(variant) {
+            return Err(ApiError::InvalidArgument(format!(
+                "model '{}' computes its whole output only: attention and fusion cannot be turned off",
+                engine.info().name
+            )));
+        }
+        let descriptor = engine.embed_image(image, variant).await?;
+        Ok((engine.info().variant_id(variant).to_string(), descriptor))
     }
 
     /// A stored frame's header (searchable frames only).
@@ -377,17 +438,22 @@ impl LoopService {
         Ok(s.frame(frame_id)?.0)
     }
 
-    /// Images embedded here may only go to sessions of this server's descriptor space.
+    /// The served model that embeds images for a session: the one of its descriptor space.
+    pub fn engine_of(&self, s: &Session) -> Result<&Engine, ApiError> {
+        self.model_of(&s.meta.descriptor_id).ok_or_else(|| {
+            ApiError::FailedPrecondition(format!(
+                "session '{}' holds descriptors of '{}', but this server computes {}: images sent to it \
+                 would mix descriptor spaces (run a server with the session's model, or create a new session)",
+                s.meta.id,
+                s.meta.descriptor_id,
+                self.served_ids()
+            ))
+        })
+    }
+
+    /// Images embedded here may only go to sessions of a served model's descriptor space.
     pub(super) fn check_space(&self, s: &Session) -> Result<(), ApiError> {
-        let info = self.engine.info();
-        if info.compatible(&s.meta.descriptor_id) {
-            return Ok(());
-        }
-        Err(ApiError::FailedPrecondition(format!(
-            "session '{}' holds descriptors of '{}', but this server computes '{}': images sent to it would \
-             mix descriptor spaces (run a server with the session's model, or create a new session)",
-            s.meta.id, s.meta.descriptor_id, info.descriptor_id
-        )))
+        self.engine_of(s).map(|_| ())
     }
 
     /// The descriptor of a frame's content and, for an image when `features` is asked for, its
@@ -424,18 +490,18 @@ impl LoopService {
                 "a right image needs a session camera with stereo (baseline, or the right camera's pose)".into(),
             ));
         }
-        self.check_space(s)?;
+        let engine = self.engine_of(s)?;
         let scale = s.meta.camera.as_ref().map_or(crate::verify::depth::DEFAULT_DEPTH_SCALE, |c| c.depth_scale());
         // The engine's queue first: a refused image (overload) is neither decoded nor searched
         // for features, so a refusal stays cheap while the model is busy.
-        let admission = self.engine.admit()?;
-        let limits = self.engine.info().limits;
+        let admission = engine.admit()?;
+        let limits = engine.info().limits;
         // A depth image is decoded before anything else: a bad one is refused, nothing stored.
         let depth = match depth {
             Some(d) if features => Some(self.verifier.decode_depth(d, scale, limits).await.map_err(bad_depth)?),
             _ => None,
         };
-        let embed = self.engine.embed_admitted(admission, bytes.clone(), Variant::FULL);
+        let embed = engine.embed_admitted(admission, bytes.clone(), Variant::FULL);
         let camera = s.meta.camera;
         let extract = async {
             match features {

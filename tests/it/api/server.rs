@@ -300,7 +300,7 @@ async fn http_sessions_frames_queries_and_errors() {
     expect(400)(bad_json);
     assert_eq!(http.get(url("/healthz")).send().await.unwrap().status(), 200);
     let metrics = http.get(url("/metrics")).send().await.unwrap().text().await.unwrap();
-    assert!(metrics.contains("loopd_engine_images_total"));
+    assert!(metrics.contains("loopd_engine_images_total{model=\"loopd\"}"), "{metrics}");
     assert_eq!(http.delete(url("/v1/sessions/desk")).send().await.unwrap().status(), 204);
     assert_eq!(http.get(url("/v1/sessions/desk")).send().await.unwrap().status(), 404);
 }

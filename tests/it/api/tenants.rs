@@ -684,7 +684,7 @@ async fn a_tenants_backlog_delays_another_tenants_image_by_about_one_batch() {
         let text = m.text().await.unwrap();
         let depth = text
             .lines()
-            .find_map(|l| l.strip_prefix("loopd_engine_queue_depth "))
+            .find_map(|l| l.strip_prefix("loopd_engine_queue_depth{model=\"loopd\"} "))
             .and_then(|v| v.trim().parse::<u64>().ok())
             .unwrap_or(0);
         if depth >= 20 {

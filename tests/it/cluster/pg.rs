@@ -25,6 +25,7 @@ fn meta(id: &str) -> SessionMeta {
         camera: None,
         thumbnails: false,
         index: Default::default(),
+        model: None,
     }
 }
 

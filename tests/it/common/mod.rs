@@ -116,6 +116,7 @@ pub fn session(name: &str, storage: loopd::index::Storage) -> loopd::store::NewS
         camera: None,
         thumbnails: false,
         index: Default::default(),
+        model: None,
     }
 }
 

@@ -115,3 +115,190 @@ fn a_broken_model_or_manifest_is_refused_with_the_reason() {
         "the manifest says the output is normalised",
     );
 }
+
+/// `serve --models`: one server serves the built-in network and two TorchScript models at once
+/// (each its own engine: queue, batches, metrics). Sessions bound to each answer over both APIs;
+/// `/v1/embed?model=` gives the descriptors `models check` saved, which PyTorch reproduces on the
+/// same pixels within 1e-5; a name not served, a variant a TorchScript model lacks and a broken
+/// model in the repository are refused with the reason.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_server_serves_the_builtin_model_and_two_torchscript_models_over_both_apis() {
+    use loopd::api::server::{RunningServer, ServerConfig};
+    use loopd::engine::EngineConfig;
+    use loopd::pb;
+    use loopd::pb::loopd_client::LoopdClient;
+    use serde_json::{json, Value};
+
+    let dir = tempfile::tempdir().unwrap();
+    export(dir.path());
+    let repo = dir.path().join("repo");
+    std::fs::create_dir(&repo).unwrap();
+    for m in ["small-resnet", "small-bgr"] {
+        std::fs::rename(dir.path().join(m), repo.join(m)).unwrap();
+        // loopd's descriptors of the real images, checked against PyTorch on the same inputs.
+        let saved = dir.path().join(format!("{m}.out"));
+        assert!(check(&repo.join(m), Some(&saved)).status.success(), "models check {m}");
+        let cmp = python(&["compare".as_ref(), repo.join(m).as_os_str(), saved.as_os_str()]);
+        eprintln!("{m} against PyTorch: {}", String::from_utf8_lossy(&cmp.stdout));
+        assert!(cmp.status.success(), "{m}: loopd and PyTorch differ by more than 1e-5");
+    }
+    let data_dir = tempfile::tempdir().unwrap();
+    let config = |models: &Path| ServerConfig {
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        models_dir: Some(models.to_path_buf()),
+        ..ServerConfig::on_loopback(data_dir.path().to_path_buf())
+    };
+    let server = RunningServer::start(config(&repo), imagenet_model()).await.unwrap();
+    let base = format!("http://{}", server.http_addr);
+    let http = reqwest::Client::new();
+    let mut grpc = LoopdClient::connect(format!("http://{}", server.grpc_addr)).await.unwrap();
+
+    // Listed over both APIs, the default first, then the repository's by folder name.
+    let listed: Value = http.get(format!("{base}/v1/models")).send().await.unwrap().json().await.unwrap();
+    let models = listed["models"].as_array().unwrap();
+    let names: Vec<&str> = models.iter().map(|m| m["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["loopd", "small-bgr", "small-resnet"], "{listed}");
+    let defaults: Vec<bool> = models.iter().map(|m| m["default"].as_bool().unwrap()).collect();
+    assert_eq!(defaults, [true, false, false]);
+    let dims: Vec<u64> = models.iter().map(|m| m["dim"].as_u64().unwrap()).collect();
+    assert_eq!(&dims[1..], [256, 512]);
+    assert_eq!(models[2]["kind"], "torchscript");
+    assert!(models[2]["license"].as_str().unwrap().contains("seeded random weights"));
+    let id = |name: &str| models.iter().find(|m| m["name"] == name).unwrap()["descriptor_id"].as_str().unwrap();
+    let over_grpc = grpc.list_models(pb::ListModelsRequest {}).await.unwrap().into_inner().models;
+    assert_eq!(
+        over_grpc.iter().map(|m| (m.name.as_str(), m.descriptor_id.as_str(), m.dim as u64)).collect::<Vec<_>>(),
+        models
+            .iter()
+            .map(|m| (m["name"].as_str().unwrap(), m["descriptor_id"].as_str().unwrap(), m["dim"].as_u64().unwrap()))
+            .collect::<Vec<_>>()
+    );
+
+    // Each model's descriptors through the server: what `models check` saved, bit for bit
+    // within 1e-6 (so PyTorch's within 1e-5, above).
+    for m in ["small-resnet", "small-bgr"] {
+        let mut worst = 0f32;
+        for img in IMAGES {
+            let r = http
+                .post(format!("{base}/v1/embed?model={m}"))
+                .body(std::fs::read(data(img)).unwrap())
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), 200);
+            let r: Value = r.json().await.unwrap();
+            assert_eq!(r["descriptor_id"], id(m));
+            let got: Vec<f32> = serde_json::from_value(r["descriptor"].clone()).unwrap();
+            let stem = Path::new(img).file_stem().unwrap().to_string_lossy().into_owned();
+            let saved = tch::Tensor::read_safetensors(dir.path().join(format!("{m}.out/{stem}.safetensors"))).unwrap();
+            let want: Vec<f32> =
+                saved.iter().find(|(k, _)| k == "descriptor").unwrap().1.shallow_clone().try_into().unwrap();
+            assert_eq!(got.len(), want.len());
+            worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(worst, f32::max);
+        }
+        eprintln!("{m}: server against models check, max abs diff {worst:e}");
+        assert!(worst <= 1e-6, "{m}: {worst}");
+    }
+    let refused = http
+        .post(format!("{base}/v1/embed?model=small-bgr&attention=false"))
+        .body(std::fs::read(data(IMAGES[2])).unwrap())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(refused.status(), 400);
+    assert!(refused.text().await.unwrap().contains("whole output only"));
+
+    // Sessions bound to each model: HTTP, gRPC, and the default.
+    let create = |body: Value| http.post(format!("{base}/v1/sessions")).json(&body).send();
+    let unknown = create(json!({"id": "x", "model": "netvlad"})).await.unwrap();
+    assert_eq!(unknown.status(), 400);
+    let why = unknown.text().await.unwrap();
+    assert!(why.contains("'netvlad' is not served here") && why.contains("small-resnet"), "{why}");
+    let r = create(json!({"id": "resnet", "model": "small-resnet"})).await.unwrap();
+    assert_eq!(r.status(), 201);
+    let s: Value = r.json().await.unwrap();
+    assert_eq!(
+        (s["model"].as_str(), s["dim"].as_u64(), s["descriptor_id"].as_str()),
+        (Some("small-resnet"), Some(512), Some(id("small-resnet")))
+    );
+    let bgr = grpc
+        .create_session(pb::CreateSessionRequest { id: "bgr".into(), model: "small-bgr".into(), ..Default::default() })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!((bgr.model.as_str(), bgr.dim, bgr.descriptor_id.as_str()), ("small-bgr", 256, id("small-bgr")));
+    let r = create(json!({"id": "builtin"})).await.unwrap();
+    let s: Value = r.json().await.unwrap();
+    assert_eq!((s["model"].as_str(), s["descriptor_id"].as_str()), (Some("loopd"), Some(id("loopd"))));
+
+    // Frames in by image on each session; a query by image finds its own frame first.
+    let frames = ["slambook2-ch11/1.png", "photos/dog.jpg", "photos/scream.jpg"];
+    for session in ["resnet", "builtin"] {
+        for (i, f) in frames.iter().enumerate() {
+            let form = reqwest::multipart::Form::new()
+                .text("robot_id", "r1")
+                .text("timestamp", i.to_string())
+                .part("image", reqwest::multipart::Part::bytes(std::fs::read(data(f)).unwrap()).file_name("f"));
+            let r = http.post(format!("{base}/v1/sessions/{session}/frames")).multipart(form).send().await.unwrap();
+            assert_eq!(r.status(), 201, "{session}: {}", r.text().await.unwrap());
+        }
+    }
+    for (i, f) in frames.iter().enumerate() {
+        grpc.add_frame(pb::AddFrameRequest {
+            session_id: "bgr".into(),
+            robot_id: "r1".into(),
+            timestamp: Some(i as f64),
+            content: Some(pb::add_frame_request::Content::Image(std::fs::read(data(f)).unwrap().into())),
+            ..Default::default()
+        })
+        .await
+        .unwrap();
+    }
+    for session in ["resnet", "bgr", "builtin"] {
+        let q = grpc
+            .query(pb::QueryRequest {
+                session_id: session.into(),
+                robot_id: "r2".into(),
+                content: Some(pb::query_request::Content::Image(std::fs::read(data(frames[1])).unwrap().into())),
+                ..Default::default()
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let best = &q.matches[0];
+        assert_eq!(best.timestamp, 1.0, "{session}: {q:?}");
+        assert!(best.score > 0.999, "{session}: {}", best.score);
+        let info: Value = http.get(format!("{base}/v1/sessions/{session}")).send().await.unwrap().json().await.unwrap();
+        assert_eq!(info["frames"], 3);
+    }
+    // A descriptor of the wrong model's length is refused.
+    let d512 = vec![0.044f32; 512];
+    let r = http
+        .post(format!("{base}/v1/sessions/bgr/frames"))
+        .json(&json!({"robot_id": "r1", "descriptor": d512}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+    // Each model's engine counts its own images.
+    let metrics = http.get(format!("{base}/metrics")).send().await.unwrap().text().await.unwrap();
+    let images = |m: &str| {
+        metrics
+            .lines()
+            .find_map(|l| l.strip_prefix(&format!("loopd_engine_images_total{{model=\"{m}\"}} ")))
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .unwrap_or_else(|| panic!("no images count for {m}: {metrics}"))
+    };
+    assert_eq!(images("small-resnet"), IMAGES.len() as u64 + 3 + 1);
+    assert_eq!(images("small-bgr"), IMAGES.len() as u64 + 3 + 1);
+    assert_eq!(images("loopd"), 3 + 1);
+    server.shutdown().await.unwrap();
+
+    // A repository holding a broken model: the server does not start, and says which.
+    std::fs::rename(dir.path().join("nan"), repo.join("nan")).unwrap();
+    let bad = |name: &str| repo.join(name).join("model.json");
+    std::fs::write(bad("nan"), "{\"name\": \"nan\"}").unwrap();
+    let e = RunningServer::start(config(&repo), imagenet_model()).await.err().expect("a broken model refused");
+    let e = format!("{e:#}");
+    assert!(e.contains("nan") && e.contains("not a model manifest"), "{e}");
+}

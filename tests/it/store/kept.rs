@@ -26,6 +26,7 @@ pub(super) fn nordland_session(dim: usize) -> NewSession {
         camera: None,
         thumbnails: false,
         index: Default::default(),
+        model: None,
     }
 }
 

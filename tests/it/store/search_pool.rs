@@ -30,7 +30,7 @@ fn health_checks_answer_while_large_searches_run() {
         let mut descriptors = Vec::new();
         for i in 0..16 {
             let image = std::fs::read(data(&format!("corridor/ref/{:07}.jpg", i * 7))).unwrap();
-            descriptors.push(svc.embed(image.into(), Variant::FULL).await.unwrap().1);
+            descriptors.push(svc.embed(image.into(), Variant::FULL, None).await.unwrap().1);
         }
         let create = CreateSession { id: Some("big".into()), storage: Storage::F32, ..Default::default() };
         svc.create_session(create).await.unwrap();

@@ -86,20 +86,22 @@ class Client:
     def create_session(self, id: str = "", name: str = "", *, camera: Optional[Sequence[float]] = None,
                        storage: int = pb.STORAGE_UNSPECIFIED, default_query: Optional[pb.QueryOptions] = None,
                        thumbnails: bool = False, index: str = "auto", exist_ok: bool = False,
-                       depth_scale: Optional[float] = None, stereo: Optional[dict] = None) -> pb.Session:
+                       depth_scale: Optional[float] = None, stereo: Optional[dict] = None,
+                       model: str = "") -> pb.Session:
         """A new session; `camera` is fx, fy, cx, cy[, k1, k2, p1, p2, k3] (verified loops then
         carry a relative pose); `depth_scale`: units per metre of its frames' 16-bit depth images
         (default 1000); `stereo`: the right camera of a stereo pair, {"baseline": m} for a rectified
         pair or {"rotation": 9 values, "translation": 3, "right_intrinsics": 4, "right_distortion":
         5} (X_right = R X_left + t); `thumbnails` keeps a small JPEG of each frame (the loop
         inspector shows them); `index` is "auto" (exact until the session is large, then
-        approximate), "exact" or "approximate". With `exist_ok` an existing session of that id
-        is returned."""
+        approximate), "exact" or "approximate"; `model` names the served model whose descriptors
+        it holds (`models()`; empty: the server's default). With `exist_ok` an existing session of
+        that id is returned."""
         kinds = {"auto": pb.INDEX_KIND_AUTO, "exact": pb.INDEX_KIND_EXACT, "approximate": pb.INDEX_KIND_APPROXIMATE}
         if index not in kinds:
             raise ValueError(f"index {index!r} is not one of {', '.join(kinds)}")
         request = pb.CreateSessionRequest(id=id, name=name or id, storage=storage, default_query=default_query,
-                                          thumbnails=thumbnails, index=kinds[index])
+                                          thumbnails=thumbnails, index=kinds[index], model=model)
         if camera is not None:
             v = [float(x) for x in camera]
             request.camera.CopyFrom(pb.Camera(fx=v[0], fy=v[1], cx=v[2], cy=v[3], distortion=v[4:]))
@@ -113,6 +115,10 @@ class Client:
             if exist_ok and id and e.code() == grpc.StatusCode.ALREADY_EXISTS:
                 return self.get_session(id)
             raise
+
+    def models(self) -> List[pb.Model]:
+        """The models the server serves (`serve --models`), the default first."""
+        return list(self._unary(self._stub.ListModels, pb.ListModelsRequest()).models)
 
     def get_session(self, id: str) -> pb.Session:
         return self._unary(self._stub.GetSession, pb.GetSessionRequest(id=id))
