@@ -38,6 +38,7 @@ fn frame(i: usize, dim: usize) -> pb::AddFrameRequest {
         timestamp: Some(i as f64),
         content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
             values: (0..dim).map(|k| ((k * 31 + i * 17) % 101) as f32 - 50.0).collect(),
+            ..Default::default()
         })),
         options: Some(pb::QueryOptions { k: Some(5), ..Default::default() }),
         ..Default::default()

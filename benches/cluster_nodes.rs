@@ -49,7 +49,10 @@ fn add(session: &str, i: usize) -> pb::AddFrameRequest {
         session_id: session.into(),
         robot_id: format!("robot{}", i % WRITERS),
         timestamp: Some(i as f64),
-        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor { values: descriptor(i) })),
+        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+            values: descriptor(i),
+            ..Default::default()
+        })),
         ..Default::default()
     }
 }
@@ -76,7 +79,10 @@ async fn write(g: &Client, session: &str, n: usize) -> f64 {
 async fn query(g: &mut Client, session: &str, i: usize) -> Duration {
     let r = pb::QueryRequest {
         session_id: session.into(),
-        content: Some(pb::query_request::Content::Descriptor(pb::Descriptor { values: descriptor(i) })),
+        content: Some(pb::query_request::Content::Descriptor(pb::Descriptor {
+            values: descriptor(i),
+            ..Default::default()
+        })),
         options: Some(pb::QueryOptions { k: Some(5), verify: Some(false), ..Default::default() }),
         ..Default::default()
     };

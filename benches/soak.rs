@@ -92,6 +92,7 @@ async fn robot(
                 robot_id: format!("robot-{r}"),
                 content: Some(pb::query_request::Content::Descriptor(pb::Descriptor {
                     values: (0..dim).map(|_| rng.random_range(-1.0f32..1.0)).collect(),
+                    ..Default::default()
                 })),
                 options: Some(pb::QueryOptions { k: Some(5), ..Default::default() }),
                 ..Default::default()
@@ -103,6 +104,7 @@ async fn robot(
             } else {
                 pb::add_frame_request::Content::Descriptor(pb::Descriptor {
                     values: (0..dim).map(|_| rng.random_range(-1.0f32..1.0)).collect(),
+                    ..Default::default()
                 })
             };
             let req = pb::AddFrameRequest {

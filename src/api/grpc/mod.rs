@@ -180,7 +180,9 @@ fn frame_input(r: pb::AddFrameRequest) -> Result<(String, FrameInput, QueryOverr
         Some(pb::add_frame_request::Content::Descriptor(_)) if !r.depth.is_empty() || !r.right.is_empty() => {
             return Err(ApiError::InvalidArgument("a depth or right image goes with an image, not a descriptor".into()))
         }
-        Some(pb::add_frame_request::Content::Descriptor(d)) => Content::Descriptor(d.values),
+        Some(pb::add_frame_request::Content::Descriptor(d)) => {
+            Content::Descriptor(d.values, Some(d.descriptor_id).filter(|i| !i.is_empty()))
+        }
         None => return Err(ApiError::InvalidArgument("a frame needs an image or a descriptor".into())),
     };
     let metadata = if r.metadata_json.is_empty() {
@@ -298,7 +300,9 @@ impl pb::loopd_server::Loopd for GrpcApi {
             Some(_) if !r.depth.is_empty() || !r.right.is_empty() => {
                 return Err(ApiError::InvalidArgument("a depth or right image goes with an image".into()).into())
             }
-            Some(pb::query_request::Content::Descriptor(d)) => QueryTarget::Content(Content::Descriptor(d.values)),
+            Some(pb::query_request::Content::Descriptor(d)) => {
+                QueryTarget::Content(Content::Descriptor(d.values, Some(d.descriptor_id).filter(|i| !i.is_empty())))
+            }
             Some(pb::query_request::Content::FrameId(id)) => QueryTarget::Frame(id),
             None => return Err(Status::invalid_argument("a query needs an image, a descriptor or a frame_id")),
         };

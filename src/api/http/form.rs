@@ -31,6 +31,9 @@ pub struct FrameFields {
     #[schema(value_type = Option<Object>)]
     pub metadata: Option<serde_json::Value>,
     pub descriptor: Option<Vec<f32>>,
+    /// Optional, with `descriptor`: the descriptor space its values come from (a served model's
+    /// `descriptor_id`, `GET /v1/models`); a session of another space refuses them (409).
+    pub descriptor_id: Option<String>,
     pub options: Option<QueryOverrides>,
     /// A write's idempotency key (1-128 visible ASCII characters): sent again with it, the
     /// write stores nothing and answers the first write's frame id.
@@ -55,7 +58,7 @@ fn fields_from_text(
     let mut obj = serde_json::Map::new();
     for (k, v) in map {
         let value = match k.as_str() {
-            "robot_id" | "idempotency_key" => serde_json::Value::String(v),
+            "robot_id" | "idempotency_key" | "descriptor_id" => serde_json::Value::String(v),
             "timestamp" | "frame_id" | "pose" | "metadata" | "descriptor" | "options" => serde_json::from_str(&v)
                 .map_err(|e| ApiError::InvalidArgument(format!("field {k}: not valid JSON/number ({e})")))?,
             other => return Err(ApiError::InvalidArgument(format!("unknown field '{other}'"))),
@@ -162,7 +165,7 @@ pub fn content(f: &mut FrameFields) -> Result<Content, ApiError> {
         (None, _) if depth.is_some() || right.is_some() => {
             Err(ApiError::InvalidArgument("a 'depth' or 'right' part goes with an 'image' part".into()))
         }
-        (None, Some(d)) => Ok(Content::Descriptor(d)),
+        (None, Some(d)) => Ok(Content::Descriptor(d, f.descriptor_id.take())),
         (None, None) => Err(ApiError::InvalidArgument("an image or a descriptor is required".into())),
     }
 }

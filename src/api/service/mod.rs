@@ -64,18 +64,12 @@ pub enum Content {
     /// An encoded image, and the depth image registered to it if the frame has one (16-bit in
     /// the session camera's `depth_scale` units, or float metres), or the right image of a stereo
     /// pair (the session camera's `stereo`): loops verified with it get metric poses.
-    Image {
-        image: Bytes,
-        depth: Option<Bytes>,
-        right: Option<Bytes>,
-    },
-    Descriptor(Vec<f32>),
+    Image { image: Bytes, depth: Option<Bytes>, right: Option<Bytes> },
+    /// A descriptor the client computed, and the descriptor space it says it comes from.
+    Descriptor(Vec<f32>, Option<String>),
     /// An image of this server's model embedded, and its features extracted, ahead (sequence
     /// jobs do both in batches): it is verified and kept like an image sent to `add_and_query`.
-    Embedded {
-        descriptor: Vec<f32>,
-        features: Result<Features, String>,
-    },
+    Embedded { descriptor: Vec<f32>, features: Result<Features, String> },
 }
 
 /// Query options as sent: unset fields fall back to the session's defaults.
@@ -467,7 +461,18 @@ impl LoopService {
         thumbnail: bool,
     ) -> Result<Prepared, ApiError> {
         let bytes = match content {
-            Content::Descriptor(descriptor) => {
+            Content::Descriptor(descriptor, space) => {
+                if let Some(space) = space.filter(|id| *id != s.meta.descriptor_id) {
+                    return Err(ApiError::FailedPrecondition(format!(
+                        "session '{}' holds descriptors of '{}'{}, but this descriptor is of '{space}'{}: they \
+                         would mix descriptor spaces",
+                        s.meta.id,
+                        s.meta.descriptor_id,
+                        self.model_of(&s.meta.descriptor_id)
+                            .map_or(String::new(), |e| format!(" (model {})", e.info().name)),
+                        self.model_of(&space).map_or(String::new(), |e| format!(" (model {})", e.info().name)),
+                    )));
+                }
                 let none = QueryFeatures::None("the query has no image (descriptor only)".into());
                 return Ok(Prepared { descriptor, features: none, thumbnail: None });
             }
@@ -550,7 +555,7 @@ impl LoopService {
         // Every check that needs no forward pass; the descriptor space is checked in `prepare`,
         // before the image is embedded.
         let t = f.check()?;
-        let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
+        let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new(), None));
         let prepared = self.prepare(s, content, self.keeps_features(), s.meta.thumbnails).await?;
         self.store_frame(s, f.into_new_frame(t, prepared)).await
     }

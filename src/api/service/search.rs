@@ -172,7 +172,7 @@ impl LoopService {
         }
         q.validate().map_err(ApiError::from)?;
         self.check_confidence(s, &q)?;
-        let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new()));
+        let content = std::mem::replace(&mut f.content, Content::Descriptor(Vec::new(), None));
         let features = q.verify.geometric || self.keeps_features();
         let prepared = self.prepare(s, content, features, s.meta.thumbnails).await?;
         let history = History::Live(Some(f.robot_id.clone()));

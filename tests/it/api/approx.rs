@@ -78,7 +78,10 @@ async fn add(c: &mut LoopdClient<Channel>, id: &str, frames: &[(String, Vec<f32>
             session_id: id.into(),
             robot_id: robot.clone(),
             timestamp: Some(i as f64),
-            content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor { values: d.clone() })),
+            content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+                values: d.clone(),
+                ..Default::default()
+            })),
             ..Default::default()
         };
         ids.push(c.add_frame(req).await.unwrap().into_inner().frame_id);
@@ -260,7 +263,10 @@ async fn every_query_option_is_honoured_by_the_approximate_index() {
     ];
     for (name, robot, o, at, allowed) in cases {
         for q in [0usize, 37, 111, 150, 221] {
-            let d = pb::query_request::Content::Descriptor(pb::Descriptor { values: frames[q].1.clone() });
+            let d = pb::query_request::Content::Descriptor(pb::Descriptor {
+                values: frames[q].1.clone(),
+                ..Default::default()
+            });
             let exact = query(&mut c, "corridor-exact", robot, d.clone(), &o, at).await;
             let approx = query(&mut c, "corridor-approx", robot, d, &o, at).await;
             assert!(!exact.is_empty(), "{name}");
@@ -305,7 +311,10 @@ async fn an_auto_session_switches_to_the_approximate_index_at_its_size() {
             session_id: "corridor-auto".into(),
             robot_id: robot.clone(),
             timestamp: Some((AUTO_FRAMES - 1 + i) as f64),
-            content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor { values: d.clone() })),
+            content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+                values: d.clone(),
+                ..Default::default()
+            })),
             ..Default::default()
         };
         c2.add_frame(req).await.unwrap();
@@ -406,7 +415,10 @@ async fn a_saved_index_is_loaded_at_restart_and_a_corrupt_one_is_rebuilt() {
             session_id: "c".into(),
             robot_id: robot.clone(),
             timestamp: Some(i as f64),
-            content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor { values: d.clone() })),
+            content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+                values: d.clone(),
+                ..Default::default()
+            })),
             ..Default::default()
         };
         assert_eq!(c.add_frame(req).await.unwrap().into_inner().frame_id, i as u64);

@@ -126,7 +126,10 @@ async fn grpc_errors_carry_the_right_codes_and_the_server_keeps_serving() {
         session_id: "errors".into(),
         robot_id: "r".into(),
         timestamp: Some(0.0),
-        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor { values: vec![0.5; 10] })),
+        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+            values: vec![0.5; 10],
+            ..Default::default()
+        })),
         ..Default::default()
     };
     let status = c.add_frame(short).await.unwrap_err();

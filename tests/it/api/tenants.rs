@@ -91,6 +91,7 @@ fn descriptor_frame(session: &str, dim: usize, i: usize) -> pb::AddFrameRequest 
         timestamp: Some(i as f64),
         content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
             values: (0..dim).map(|k| ((k * 13 + i * 7) % 89) as f32 - 44.0).collect(),
+            ..Default::default()
         })),
         ..Default::default()
     }

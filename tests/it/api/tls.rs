@@ -102,6 +102,7 @@ async fn mutual_tls_on_both_apis_and_a_reload_on_sighup() {
         timestamp: Some(i as f64),
         content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
             values: (0..dim).map(|k| ((k + i * 5) % 17) as f32 - 8.0).collect(),
+            ..Default::default()
         })),
         ..Default::default()
     };

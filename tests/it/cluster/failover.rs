@@ -44,7 +44,10 @@ fn frame(t: f64, d: &[f32], id: u64) -> pb::AddFrameRequest {
         robot_id: "r0".into(),
         timestamp: Some(t),
         frame_id: Some(id),
-        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor { values: d.to_vec() })),
+        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+            values: d.to_vec(),
+            ..Default::default()
+        })),
         ..Default::default()
     }
 }
@@ -54,7 +57,10 @@ fn frame(t: f64, d: &[f32], id: u64) -> pb::AddFrameRequest {
 async fn answer(g: &mut Client, d: &[f32]) -> Result<(Vec<u64>, bool), Code> {
     let r = pb::QueryRequest {
         session_id: "failover".into(),
-        content: Some(pb::query_request::Content::Descriptor(pb::Descriptor { values: d.to_vec() })),
+        content: Some(pb::query_request::Content::Descriptor(pb::Descriptor {
+            values: d.to_vec(),
+            ..Default::default()
+        })),
         options: Some(pb::QueryOptions {
             k: Some(20),
             verify: Some(false),

@@ -103,7 +103,10 @@ fn descriptor_frame(session: &str, robot: &str, t: f64, d: &[f32], id: Option<u6
         robot_id: robot.into(),
         timestamp: Some(t),
         frame_id: id,
-        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor { values: d.to_vec() })),
+        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+            values: d.to_vec(),
+            ..Default::default()
+        })),
         ..Default::default()
     }
 }
@@ -125,7 +128,7 @@ fn query(session: &str, content: pb::query_request::Content, k: u32) -> pb::Quer
 }
 
 fn by_descriptor(d: &[f32]) -> pb::query_request::Content {
-    pb::query_request::Content::Descriptor(pb::Descriptor { values: d.to_vec() })
+    pb::query_request::Content::Descriptor(pb::Descriptor { values: d.to_vec(), ..Default::default() })
 }
 
 /// Ids and score bits of an answer, in order.

@@ -280,6 +280,32 @@ async fn one_server_serves_the_builtin_model_and_two_torchscript_models_over_bot
         .await
         .unwrap();
     assert_eq!(r.status(), 400);
+    // A descriptor that says it is another model's is refused naming both; its own is taken.
+    let frame = |id: &str| json!({"robot_id": "r1", "timestamp": 9.0, "descriptor": d512, "descriptor_id": id});
+    let r = http.post(format!("{base}/v1/sessions/resnet/frames")).json(&frame(id("small-bgr"))).send().await.unwrap();
+    assert_eq!(r.status(), 409);
+    let why = r.text().await.unwrap();
+    assert!(why.contains("(model small-resnet)") && why.contains("(model small-bgr)"), "{why}");
+    let r =
+        http.post(format!("{base}/v1/sessions/resnet/frames")).json(&frame(id("small-resnet"))).send().await.unwrap();
+    assert_eq!(r.status(), 201);
+    let refused = grpc
+        .query(pb::QueryRequest {
+            session_id: "bgr".into(),
+            robot_id: "r2".into(),
+            content: Some(pb::query_request::Content::Descriptor(pb::Descriptor {
+                values: vec![0.0625; 256],
+                descriptor_id: id("loopd").into(),
+            })),
+            ..Default::default()
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::FailedPrecondition);
+    assert!(
+        refused.message().contains("(model loopd)") && refused.message().contains("(model small-bgr)"),
+        "{refused:?}"
+    );
     // Each model's engine counts its own images.
     let metrics = http.get(format!("{base}/metrics")).send().await.unwrap().text().await.unwrap();
     let images = |m: &str| {

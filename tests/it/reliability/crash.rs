@@ -128,7 +128,10 @@ async fn client(role: usize, s: Arc<Loopd>, ledger: Shared, dim: usize, cycle: u
                         session_id: SESSION.into(),
                         robot_id: robot.clone(),
                         timestamp: Some(t),
-                        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor { values: d })),
+                        content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
+                            values: d,
+                            ..Default::default()
+                        })),
                         ..Default::default()
                     };
                     g.add_frame(req).await.ok().map(|r| r.into_inner().frame_id)
@@ -158,6 +161,7 @@ async fn client(role: usize, s: Arc<Loopd>, ledger: Shared, dim: usize, cycle: u
                         timestamp: Some(t + k as f64),
                         content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
                             values: random_descriptor(&mut rng, dim),
+                            ..Default::default()
                         })),
                         ..Default::default()
                     };

@@ -235,6 +235,7 @@ async fn stalled_connections_are_closed_and_the_limit_holds() {
         timestamp: Some(i as f64),
         content: Some(pb::add_frame_request::Content::Descriptor(pb::Descriptor {
             values: (0..dim).map(|k| ((k * 31 + i * 7) % 97) as f32 - 48.0).collect(),
+            ..Default::default()
         })),
         options: Some(pb::QueryOptions { k: Some(300), verify: Some(false), ..Default::default() }),
         ..Default::default()
