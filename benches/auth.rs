@@ -71,7 +71,7 @@ async fn main() -> anyhow::Result<()> {
     let (d1, d2) = (tempfile::tempdir()?, tempfile::tempdir()?);
     let open = start(d1.path(), false).await?;
     let keyed = start(d2.path(), true).await?;
-    let dim = open.service.engine.info().dim;
+    let dim = open.service.engine().info().dim;
     // A tenant with a rate limit far above the bench's, so its bucket is checked on every call.
     let tenant: serde_json::Value = reqwest::Client::new()
         .post(format!("http://{}/v1/tenants", keyed.http_addr))

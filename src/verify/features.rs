@@ -289,9 +289,6 @@ impl Features {
             return Err(VerifyError::Corrupt(format!("features blob: {n} features exceeds limit {MAX_FEATURES}")));
         }
         let trailer = if stereo { STEREO_BYTES } else { 0 };
-        if b.len() < header + trailer {
-            return Err(VerifyError::Corrupt(format!("features blob too short: {} bytes", b.len())));
-        }
         let expected = header + n * (pos_bytes + bytes + if depth { DEPTH_BYTES } else { 0 }) + trailer;
         if b.len() != expected {
             return Err(VerifyError::Corrupt(format!(

@@ -62,7 +62,7 @@ fn routes(frame_body: usize, max_body_bytes: usize) -> OpenApiRouter<Arc<AppStat
 }
 
 pub fn router(state: Arc<AppState>, max_body_bytes: usize) -> Router {
-    let frame_body = state.service.engine.info().limits.max_bytes + (1 << 20);
+    let frame_body = state.service.engine().info().limits.max_bytes + (1 << 20);
     let (router, _) = routes(frame_body, max_body_bytes).split_for_parts();
     router
         .layer(axum::middleware::from_fn_with_state(state.clone(), authenticate))

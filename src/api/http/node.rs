@@ -84,7 +84,7 @@ pub struct Info {
     )
 )]
 pub async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
-    let e = &s.service.engine;
+    let e = s.service.engine();
     let i = e.info();
     Json(Info {
         descriptor_id: i.descriptor_id.clone(),

@@ -245,7 +245,7 @@ async fn run(
     let held = service.store.session(&session).ok();
     // The session's model embeds its frames (a session of no served model: the default's, and
     // adding them refuses them).
-    let engine = held.as_ref().and_then(|s| service.engine_of(s).ok()).unwrap_or(&service.engine).clone();
+    let engine = held.as_ref().and_then(|s| service.engine_of(s).ok()).unwrap_or(service.engine()).clone();
     let width = engine.config().max_batch.max(1);
     let thumbnails = held.as_ref().is_some_and(|s| s.meta.thumbnails);
     let camera = held.as_ref().and_then(|s| s.meta.camera);

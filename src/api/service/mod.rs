@@ -25,9 +25,7 @@ use std::sync::Arc;
 
 #[derive(Clone)]
 pub struct LoopService {
-    /// The default model's engine (sessions created without `model` get its descriptors).
-    pub engine: Engine,
-    /// Every served model's engine, the default first (`serve --models`).
+    /// Every served model's engine, the default first (`serve --models`; never empty).
     pub models: Vec<Engine>,
     pub store: Arc<Store>,
     pub verifier: Verifier,
@@ -308,9 +306,8 @@ impl LoopService {
         verify: VerifyConfig,
         calibrator: Option<Calibrator>,
     ) -> Self {
-        let engine = models.first().cloned().expect("a service serves at least one model");
+        assert!(!models.is_empty(), "a service serves at least one model");
         let service = Self {
-            engine,
             models,
             store,
             verifier: Verifier::new(verify),
@@ -337,6 +334,11 @@ impl LoopService {
         }
     }
 
+    /// The default model's engine (sessions created without `model` get its descriptors).
+    pub fn engine(&self) -> &Engine {
+        &self.models[0]
+    }
+
     /// The served model whose descriptors a session of descriptor space `id` holds.
     pub fn model_of(&self, id: &str) -> Option<&Engine> {
         self.models.iter().find(|e| e.info().compatible(id))
@@ -345,7 +347,7 @@ impl LoopService {
     /// The served model called `name` (None or empty: the default).
     pub fn model_named(&self, name: Option<&str>) -> Result<&Engine, ApiError> {
         match name.filter(|n| !n.is_empty()) {
-            None => Ok(&self.engine),
+            None => Ok(self.engine()),
             Some(n) => self.models.iter().find(|e| e.info().name == n).ok_or_else(|| {
                 ApiError::InvalidArgument(format!(
                     "model '{n}' is not served here (served: {}; GET /v1/models)",

@@ -401,7 +401,7 @@ async fn images_for_a_session_of_another_model_are_refused() {
     a.shutdown().await.unwrap();
 
     let b = server_at(dir.path(), 112).await;
-    let space_b = b.service.engine.info().descriptor_id.clone();
+    let space_b = b.service.engine().info().descriptor_id.clone();
     assert_ne!(space_a, space_b);
     let refused = add_image(&b).await.unwrap();
     assert_eq!(refused.status(), 409);

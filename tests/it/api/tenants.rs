@@ -145,7 +145,7 @@ async fn tenants_see_only_their_own_sessions_on_every_route() {
     assert!(http.base.starts_with("https://"));
     let plain = reqwest::Client::new().get(format!("http://{}/healthz", server.http_addr)).send().await;
     assert!(plain.is_err() || plain.unwrap().status() != 200, "TLS on: plain HTTP gets no answer");
-    let dim = server.service.engine.info().dim;
+    let dim = server.service.engine().info().dim;
 
     // A session of the default tenant, from before tenants: the admin key acts for it.
     assert_eq!(http.call("POST", "/v1/sessions", Some(ADMIN), Some(json!({ "id": "legacy" }))).await.0, 201);
@@ -628,7 +628,7 @@ async fn jobs_wait_for_their_tenants_rate_and_leave_a_slot_for_another_tenant() 
 
     // A stream is paced the same way: 16 frames sent at once on one gRPC stream, each takes a
     // token; those beyond the rate are refused in the stream (RESOURCE_EXHAUSTED), never stored.
-    let dim = server.service.engine.info().dim;
+    let dim = server.service.engine().info().dim;
     let mut g = grpc(server.grpc_addr, Some(&keys[0])).await;
     tokio::time::sleep(Duration::from_secs(1)).await; // the bucket full again: 2 tokens
     let sent = std::time::Instant::now();

@@ -91,7 +91,7 @@ async fn mutual_tls_on_both_apis_and_a_reload_on_sighup() {
         ..ServerConfig::on_loopback(dir.path().join("data"))
     };
     let server = RunningServer::start(cfg, imagenet_model()).await.unwrap();
-    let dim = server.service.engine.info().dim;
+    let dim = server.service.engine().info().dim;
 
     // gRPC with the robot's certificate and a key.
     let mut c = authed(grpc(server.grpc_addr, &ca_pem, Some(&robot)).await.unwrap());
