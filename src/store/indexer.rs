@@ -173,7 +173,11 @@ pub(super) fn spawn(sessions: Weak<Sessions>) {
             save_if_due(&s);
             verify_one(&s);
             super::kept::checkpoint_if_due(&s);
-            let pending = s.index.read().pending(rows_this_turn(&s));
+            // Two statements: a read lock held while `rows_this_turn` takes it again would wait
+            // forever behind a writer queued between the two (parking_lot's locks are fair), and
+            // that writer (a frame's publish on the flusher) with it, and every write after it.
+            let rows = rows_this_turn(&s);
+            let pending = s.index.read().pending(rows);
             if let Some(p) = pending {
                 added = true;
                 let rows = p.reduced.len() / p.graph.dims().max(1);

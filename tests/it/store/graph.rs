@@ -162,3 +162,63 @@ fn sealed_parts_answer_as_one_graph_and_load_mapped() {
     let err = Graph::load(&path, dim, params, rows.len()).err().unwrap();
     assert!(err.contains("1500-3000"), "{err}");
 }
+
+/// Writes and the store's indexer never wait on each other. The indexer once took a session's
+/// index lock for reading twice in one turn; parking_lot's locks are fair, so a writer queued
+/// between the two reads blocked the second and waited on the first: the frame's publish on the
+/// flusher thread, and with it every later write, waited forever (CI timed out in
+/// `kept::kept_rows_that_do_not_check_out_are_read_again_from_sled`). Four writers add Nordland
+/// frames one at a time for 3 s while the indexer builds the session's graph from them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn writers_never_wait_on_the_indexer() {
+    use loopd::index::graph::IndexKind;
+    use loopd::store::{NewSession, SearchConfig, Store};
+    use std::sync::Arc;
+    use std::time::{Duration, Instant};
+    let (rows, dim) = nordland_rows();
+    let rows = Arc::new(rows);
+    let dir = tempfile::tempdir().unwrap();
+    let store = Arc::new(Store::open_with(dir.path(), SearchConfig::default()).unwrap());
+    let new = NewSession { index: IndexKind::Approximate, ..super::kept::nordland_session(dim) };
+    store.create_session(Some("nordland".into()), new).await.unwrap();
+    let s = store.session("nordland").unwrap();
+    let until = Instant::now() + Duration::from_secs(3);
+    let writers: Vec<_> = (0..4)
+        .map(|w| {
+            let (store, s, rows) = (store.clone(), s.clone(), rows.clone());
+            tokio::spawn(async move {
+                let mut added = 0;
+                for i in (w..rows.len()).step_by(4) {
+                    if Instant::now() > until {
+                        break;
+                    }
+                    let write = store.add_frames(&s, vec![super::kept::frame(&rows, i)]);
+                    match tokio::time::timeout(Duration::from_secs(20), write).await {
+                        Ok(written) => added += written.unwrap().len(),
+                        Err(_) => return Err(format!("writer {w}: frame {i} not written after 20 s")),
+                    }
+                }
+                Ok(added)
+            })
+        })
+        .collect();
+    let (mut added, mut stuck) = (0, Vec::new());
+    for w in writers {
+        match w.await.unwrap() {
+            Ok(n) => added += n,
+            Err(e) => stuck.push(e),
+        }
+    }
+    if !stuck.is_empty() {
+        // A store whose flusher waits forever cannot be dropped: its drop waits for the flusher.
+        std::mem::forget((s, store));
+        panic!("writes waited on the indexer: {stuck:?}");
+    }
+    assert!(added >= 40, "only {added} frames written in 3 s");
+    // The indexer kept going too: its graph takes every written frame.
+    let t = Instant::now();
+    while s.info().approximate_frames != Some(added) {
+        assert!(t.elapsed() < Duration::from_secs(30), "graph: {:?} of {added} frames", s.info().approximate_frames);
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
