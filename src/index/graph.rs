@@ -154,6 +154,8 @@ struct Sealed {
     /// Its file hashed against `sha256` since it was mapped (a sealed part written by this
     /// process is; one mapped at start is checked by sample at once, hashed in full later).
     verified: AtomicBool,
+    /// Its pages mapped in ahead of the searches (`Graph::populate_next`).
+    populated: AtomicBool,
     contexts: Contexts,
 }
 
@@ -216,8 +218,19 @@ impl Sealed {
             file: file.to_path_buf(),
             sha256,
             verified: AtomicBool::new(false),
+            populated: AtomicBool::new(false),
             contexts: Contexts::new(contexts),
         })
+    }
+
+    /// Maps the part's pages into the process (`MADV_POPULATE_READ`: from the page cache, or the
+    /// file), so that searches do not fault each node they visit in one at a time.
+    fn populate(&self) -> Result<(), String> {
+        #[cfg(target_os = "linux")]
+        let advice = memmap2::Advice::PopulateRead;
+        #[cfg(not(target_os = "linux"))]
+        let advice = memmap2::Advice::WillNeed;
+        self.map.advise(advice).map_err(|e| format!("mapping {} in: {e}", self.file.display()))
     }
 
     /// Unmaps the part's pages from the process (they stay in the file and the page cache).
@@ -548,6 +561,35 @@ impl Graph {
         self.live_start.store(end, Ordering::Release);
         self.memory.store(live.memory_usage(), Ordering::Relaxed);
         Ok(Some(start..end))
+    }
+
+    /// Maps one sealed part's pages in that was not yet (the store's indexer calls it each turn),
+    /// when all the sealed parts fit within their resident bound: the first searches after a
+    /// seal or a restart then find every node mapped instead of faulting thousands in each.
+    /// Parts over the bound are left to the searches, which map in what they visit (and
+    /// `touched_sealed` unmaps it). True when it mapped a part in.
+    pub fn populate_next(&self) -> bool {
+        let sealed = self.sealed.read().clone();
+        if sealed.iter().map(|s| s.map.len()).sum::<usize>() > self.params.sealed_resident {
+            return false;
+        }
+        let Some(part) = sealed.iter().find(|s| !s.populated.swap(true, Ordering::AcqRel)) else { return false };
+        match part.populate() {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::debug!(error = %e, "a sealed part was not mapped in ahead (searches map it in)");
+                false
+            }
+        }
+    }
+
+    /// Unmaps every sealed part's pages from the process, as a restart finds them (mapped in only
+    /// where the load read them); `populate_next` maps them in again.
+    pub fn release_sealed(&self) {
+        for part in self.sealed.read().iter() {
+            part.release();
+            part.populated.store(false, Ordering::Release);
+        }
     }
 
     /// Hashes the first sealed part not hashed since it was mapped, against its record: Ok(true)

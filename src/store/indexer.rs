@@ -144,6 +144,15 @@ fn verify_one(s: &Session) {
     }
 }
 
+/// Maps one sealed part of the session's graph in ahead of its searches, when the parts fit
+/// their bound (`Graph::populate_next`); outside the session's lock: it reads up to a part.
+fn populate_one(s: &Session) {
+    let graph = s.index.read().graph();
+    if let Some(graph) = graph {
+        graph.populate_next();
+    }
+}
+
 /// Rows taken from one session per turn, so that one large build does not starve the others.
 const ROWS_PER_TURN: usize = 8192;
 
@@ -172,6 +181,7 @@ pub(super) fn spawn(sessions: Weak<Sessions>) {
         for s in list {
             save_if_due(&s);
             verify_one(&s);
+            populate_one(&s);
             super::kept::checkpoint_if_due(&s);
             // Two statements: a read lock held while `rows_this_turn` takes it again would wait
             // forever behind a writer queued between the two (parking_lot's locks are fair), and

@@ -103,7 +103,8 @@ fn queries_search_a_graph_while_it_grows_past_several_reservations() {
 /// finds itself across the parts; saved and loaded again it maps the parts (its own memory holds
 /// only the live rows) and answers the same; the parts mapped at load are hashed one per call,
 /// and a part whose bytes changed is caught there (its header and length still check out at load),
-/// a truncated one at load.
+/// a truncated one at load. Parts that fit their resident bound are mapped in ahead of the
+/// searches, one per call; over it they are not.
 #[test]
 fn sealed_parts_answer_as_one_graph_and_load_mapped() {
     let (rows, dim) = nordland_rows();
@@ -145,7 +146,21 @@ fn sealed_parts_answer_as_one_graph_and_load_mapped() {
     // Its own memory: the 300 live rows (1,024 slots reserved), not the 4,500 sealed ones.
     assert!(loaded.memory_bytes() * 2 < loaded.sealed_bytes(), "{} in memory", loaded.memory_bytes());
     assert_eq!((0..4).map(|_| loaded.verify_next().unwrap()).collect::<Vec<_>>(), [true, true, true, false]);
-    drop(loaded);
+    drop((loaded, graph));
+    // Mapped in ahead of the searches when all the parts fit their bound; left to them when not
+    // (a view maps in only the pages it reads at load: under 2% here).
+    let file = |r: &std::ops::Range<usize>| parts.join(format!("{}-{}.usearch", r.start, r.end));
+    let files: usize = sealed.iter().map(|r| std::fs::metadata(file(r)).unwrap().len() as usize).sum();
+    let mapped = || loopd::index::rows::mapped_bytes(&parts);
+    let over = Graph::load(&path, dim, GraphParams { sealed_resident: files - 1, ..params }, rows.len()).unwrap();
+    assert!(!over.populate_next(), "parts over their bound are not mapped in ahead");
+    let at_load = mapped();
+    assert!(at_load * 10 < files, "{at_load} of {files} bytes mapped in at load");
+    drop(over);
+    let fits = Graph::load(&path, dim, GraphParams { sealed_resident: files, ..params }, rows.len()).unwrap();
+    assert_eq!((0..4).map(|_| fits.populate_next()).collect::<Vec<_>>(), [true, true, true, false]);
+    assert!(mapped() >= files * 99 / 100, "{} of {files} bytes mapped in", mapped());
+    drop(fits);
     // The second part's bytes change after its header: mapped, then caught by its hash.
     let file = parts.join("1500-3000.usearch");
     let mut bytes = std::fs::read(&file).unwrap();
