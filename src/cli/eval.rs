@@ -2,9 +2,11 @@ use super::{ModelArgs, VariantArgs};
 use crate::eval::run::{run as run_eval, EvalSpec};
 use crate::index::graph::IndexKind;
 use crate::index::query::VerifyOptions;
+use crate::model::script::ScriptModel;
+use crate::model::served::Served;
 use crate::verify::features::{parse_descriptor_bits, FeatureParams, DEFAULT_DESCRIPTOR_BITS};
 use crate::verify::geometric::Intrinsics;
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -13,6 +15,11 @@ use std::process::ExitCode;
 pub struct EvalArgs {
     #[command(flatten)]
     pub model: ModelArgs,
+    /// A TorchScript model's folder (model.pt and model.json, as `loopd serve --models` serves
+    /// each; docs/models.md): its descriptors are evaluated instead of the built-in network's,
+    /// through the same engine the server runs it on.
+    #[arg(long = "model", conflicts_with = "server")]
+    pub script_model: Option<PathBuf>,
     /// Ordered image sequence (files in natural name order); the reference traversal when
     /// --query-sequence is given.
     #[arg(long, required_unless_present = "server")]
@@ -153,7 +160,13 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let Some(sequence) = a.sequence.as_deref() else { anyhow::bail!("--sequence or --server is required") };
-    let model = a.model.load()?;
+    let (model, weights): (Served, &std::path::Path) = match &a.script_model {
+        Some(dir) => {
+            let device = crate::model::device::parse_device(&a.model.device)?;
+            (ScriptModel::load(dir, device).with_context(|| format!("model {}", dir.display()))?.into(), dir)
+        }
+        None => (a.model.load()?.into(), &a.model.weights),
+    };
     let verify = (a.verify != VerifyMode::None).then_some(VerifyOptions {
         geometric: matches!(a.verify, VerifyMode::Geometric | VerifyMode::All),
         candidates: a.verify_candidates,
@@ -187,7 +200,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     };
     spec.features.validate()?;
     let variant = a.variant.variant();
-    let out = run_eval(model, &spec, &a.model.weights, variant, Some(&a.cache_dir), &a.model.calibration())?;
+    let out = run_eval(model, &spec, weights, variant, Some(&a.cache_dir), &a.model.calibration())?;
     if a.json {
         println!("{}", serde_json::to_string(&out)?);
     } else {

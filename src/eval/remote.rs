@@ -56,7 +56,12 @@ pub async fn evaluate_session(
             .with_context(|| format!("querying frame {i} (frame ids must be 0..{n})"))?
             .into_inner()
             .matches;
-        results.push(QueryResult { query: i, best: m.first().map(|m| (m.frame_id as usize, m.score)) });
+        // Scored by the decision rule the server ranked them by, as `eval` scores its own.
+        let ranked = |m: &pb::Match| {
+            let verified = m.verification.as_ref().filter(|v| v.verified).map(|v| v.inliers as usize);
+            crate::verify::rank_value(m.score, verified, m.sequence.as_ref().map(|s| s.margin))
+        };
+        results.push(QueryResult { query: i, best: m.first().map(|m| (m.frame_id as usize, ranked(m))) });
         let first = m.first().and_then(|m| m.confidence.map(|c| (m.frame_id as usize, c)));
         if let Some((frame, c)) = first {
             scored.push((c, gt.is_match(i, frame, tolerance)));

@@ -10,7 +10,6 @@ use crate::index::SessionIndex;
 use crate::index::Storage;
 use crate::model::network::Variant;
 use crate::model::preprocess::ImageLimits;
-use crate::model::Model;
 use crate::verify::{
     self,
     confidence::{Calibration, Calibrator, Sample},
@@ -539,7 +538,7 @@ fn extract_all(files: &[PathBuf], label: &str, params: &FeatureParams) -> Result
 /// Loads the model, starts an engine and evaluates, with the calibrator `calibration` has for
 /// the variant's descriptors.
 pub fn run(
-    model: Model,
+    model: impl Into<crate::model::served::Served>,
     spec: &EvalSpec,
     weights: &Path,
     variant: Variant,

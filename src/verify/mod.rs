@@ -176,9 +176,16 @@ pub fn decide<T: Ranked>(candidates: &mut [T]) {
 /// 1 + inliers (at least 9), the others their sequence margin (at most 2) when it ran, else their
 /// cosine (at most 1).
 pub fn rank_score<T: Ranked>(c: &T) -> f32 {
-    match (c.verification(), c.sequence()) {
-        (Some(v), _) if v.verified => 1.0 + v.inliers as f32 + c.cosine().clamp(-1.0, 1.0) * 1e-3,
-        (_, Some(s)) => s.margin,
-        _ => c.cosine(),
+    let verified = c.verification().filter(|v| v.verified).map(|v| v.inliers);
+    rank_value(c.cosine(), verified, c.sequence().map(|s| s.margin))
+}
+
+/// [`rank_score`] from an answer's parts (what a client reads back from the server): its cosine,
+/// its inliers if geometrically verified, its sequence margin if sequence verification ran.
+pub fn rank_value(cosine: f32, verified_inliers: Option<usize>, sequence_margin: Option<f32>) -> f32 {
+    match (verified_inliers, sequence_margin) {
+        (Some(inliers), _) => 1.0 + inliers as f32 + cosine.clamp(-1.0, 1.0) * 1e-3,
+        (_, Some(margin)) => margin,
+        _ => cosine,
     }
 }

@@ -318,6 +318,57 @@ async fn one_server_serves_the_builtin_model_and_two_torchscript_models_over_bot
     assert_eq!(images("small-resnet"), IMAGES.len() as u64 + 3 + 1);
     assert_eq!(images("small-bgr"), IMAGES.len() as u64 + 3 + 1);
     assert_eq!(images("loopd"), 3 + 1);
+
+    // `loopd eval --model` runs a TorchScript model through the engine the server runs it on: on
+    // the desk frames its report is eval --server's on a session of that model holding them (f32,
+    // as eval's index), point by point of the precision-recall curve (the same scores). This
+    // random-weight model scores every pair about 0.9997: f16 rows would reorder them.
+    let r = create(json!({"id": "desk", "model": "small-resnet", "storage": "f32"})).await.unwrap();
+    assert_eq!(r.status(), 201);
+    for i in 1..=10 {
+        let form = reqwest::multipart::Form::new().text("robot_id", "r1").text("timestamp", i.to_string()).part(
+            "image",
+            reqwest::multipart::Part::bytes(std::fs::read(data(&format!("slambook2-ch11/{i}.png"))).unwrap())
+                .file_name("f"),
+        );
+        let r = http.post(format!("{base}/v1/sessions/desk/frames")).multipart(form).send().await.unwrap();
+        assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    }
+    let (grpc_addr, model, cache) = (server.grpc_addr.to_string(), repo.join("small-resnet"), dir.path().join("cache"));
+    let eval = move |local: bool| {
+        let mut c = loopd_bin();
+        c.arg("eval");
+        if local {
+            c.arg("--model").arg(&model).arg("--sequence").arg(data("slambook2-ch11")).arg("--cache-dir").arg(&cache);
+            // What the server does with a query's candidates by default.
+            c.args(["--verify", "geometric"]);
+        } else {
+            c.args(["--server", &grpc_addr, "--session", "desk"]);
+        }
+        let out = c.arg("--gt").arg(root().join("tests/gt/desk.csv")).args(["--exclude", "2", "--json"]).output();
+        let out = out.expect("running loopd eval");
+        assert!(out.status.success(), "eval (local {local}): {}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_slice::<Value>(&out.stdout).unwrap()
+    };
+    let (local, remote) = tokio::task::spawn_blocking(move || (eval(true), eval(false))).await.unwrap();
+    eprintln!("eval --model: {local}\neval --server: {remote}");
+    assert_eq!(local["descriptor_id"], id("small-resnet"));
+    for k in ["queries", "positives", "recall_at_1", "average_precision", "recall_at_100_precision"] {
+        assert_eq!(local[k], remote[k], "{k}");
+    }
+    // Every point of the precision-recall curve: each at a query's best score.
+    let curve = |v: &Value| -> Vec<f64> {
+        v["pr_curve"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|p| p.as_object().unwrap().values())
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let (a, b) = (curve(&local), curve(&remote));
+    assert!(!a.is_empty() && a.len() == b.len(), "{a:?} against {b:?}");
+    assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-5), "{a:?} against {b:?}");
     server.shutdown().await.unwrap();
 
     // A repository holding a broken model: the server does not start, and says which.
