@@ -30,6 +30,11 @@ pub async fn evaluate_session(
     // The server's calibrated confidence of each first candidate, when it gives one.
     let mut confident = Vec::with_capacity(n);
     let mut scored = Vec::new();
+    // Each answer scored by the decision rule the server ranked them by, as `eval` scores its own.
+    let ranked = |m: &pb::Match| {
+        let verified = m.verification.as_ref().filter(|v| v.verified).map(|v| v.inliers as usize);
+        crate::verify::rank_value(m.score, verified, m.sequence.as_ref().map(|s| s.margin))
+    };
     for i in 0..n {
         bar.inc(1);
         if i <= exclude {
@@ -56,11 +61,6 @@ pub async fn evaluate_session(
             .with_context(|| format!("querying frame {i} (frame ids must be 0..{n})"))?
             .into_inner()
             .matches;
-        // Scored by the decision rule the server ranked them by, as `eval` scores its own.
-        let ranked = |m: &pb::Match| {
-            let verified = m.verification.as_ref().filter(|v| v.verified).map(|v| v.inliers as usize);
-            crate::verify::rank_value(m.score, verified, m.sequence.as_ref().map(|s| s.margin))
-        };
         results.push(QueryResult { query: i, best: m.first().map(|m| (m.frame_id as usize, ranked(m))) });
         let first = m.first().and_then(|m| m.confidence.map(|c| (m.frame_id as usize, c)));
         if let Some((frame, c)) = first {

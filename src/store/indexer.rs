@@ -161,8 +161,11 @@ const IDLE: Duration = Duration::from_millis(20);
 
 /// Rows to add to a session's graph this turn: up to the end of its live part (sealed earlier in
 /// the turn when full; one that could not be sealed grows on, and is sealed larger later).
-fn rows_this_turn(s: &Session) -> usize {
-    let Some(graph) = s.index.read().graph() else { return ROWS_PER_TURN };
+/// It takes the index the caller has locked: taking the session's lock again inside one held
+/// for reading would wait forever behind a writer queued between the two (parking_lot's locks
+/// are fair), and that writer (a frame's publish on the flusher) with it, and every write after.
+fn rows_this_turn(index: &SessionIndex) -> usize {
+    let Some(graph) = index.graph() else { return ROWS_PER_TURN };
     match graph.params().seal_rows.saturating_sub(graph.live_rows()) {
         0 => ROWS_PER_TURN,
         room => ROWS_PER_TURN.min(room),
@@ -183,11 +186,10 @@ pub(super) fn spawn(sessions: Weak<Sessions>) {
             verify_one(&s);
             populate_one(&s);
             super::kept::checkpoint_if_due(&s);
-            // Two statements: a read lock held while `rows_this_turn` takes it again would wait
-            // forever behind a writer queued between the two (parking_lot's locks are fair), and
-            // that writer (a frame's publish on the flusher) with it, and every write after it.
-            let rows = rows_this_turn(&s);
-            let pending = s.index.read().pending(rows);
+            let pending = {
+                let index = s.index.read();
+                index.pending(rows_this_turn(&index))
+            };
             if let Some(p) = pending {
                 added = true;
                 let rows = p.reduced.len() / p.graph.dims().max(1);
