@@ -10,7 +10,7 @@ use crate::auth::{Auth, AuthConfig};
 use crate::engine::metrics::ModelMetrics;
 use crate::engine::{Engine, EngineConfig};
 use crate::model::preprocess::ImageLimits;
-use crate::model::served::{load_dir as load_models, Net, Served};
+use crate::model::served::{load_dir as load_models, Served};
 use crate::model::Model;
 use crate::pb;
 use crate::store::pg::{LogConfig, Replication};
@@ -218,28 +218,44 @@ impl RunningServer {
         });
         let device = model.device;
         crate::model::script::check_name(&cfg.model_name).context("--model-name")?;
-        let builtin = Served { name: cfg.model_name.clone(), net: Net::Builtin(Box::new(model)) };
+        // A repository's `builtin` folders run on the default network's weights: loaded before
+        // it moves to its engine.
+        let repository = match &cfg.models_dir {
+            Some(dir) => load_models(dir, device, Some(&model))?,
+            None => Vec::new(),
+        };
+        let builtin = Served::builtin(&cfg.model_name, model);
         let mut models = vec![Engine::start(builtin, cfg.engine.clone(), cfg.limits)?];
-        if let Some(dir) = &cfg.models_dir {
-            for m in load_models(dir, device)? {
-                if let Some(same) = models.iter().find(|e| e.info().name == m.name) {
-                    anyhow::bail!(
-                        "{}: two models are named '{}' (the other: {}); names must differ",
-                        dir.display(),
-                        m.name,
-                        same.info().descriptor_id
-                    );
-                }
-                let engine = Engine::start(m, cfg.engine.clone(), cfg.limits)?;
-                let i = engine.info();
-                tracing::info!(model = %i.name, descriptor_id = %i.descriptor_id, dim = i.dim, "serving a TorchScript model");
-                models.push(engine);
+        let dir = cfg.models_dir.as_deref().unwrap_or(std::path::Path::new(""));
+        for m in repository {
+            if let Some(same) = models.iter().find(|e| e.info().name == m.name) {
+                anyhow::bail!(
+                    "{}: two models are named '{}' (the other: {}); names must differ",
+                    dir.display(),
+                    m.name,
+                    same.info().descriptor_id
+                );
             }
+            let engine = Engine::start(m, cfg.engine.clone(), cfg.limits)?;
+            let i = engine.info();
+            if let Some(same) = models.iter().find(|e| e.info().descriptor_id == i.descriptor_id) {
+                tracing::warn!(model = %i.name, same = %same.info().name, descriptor_id = %i.descriptor_id,
+                    "two served models compute the same descriptors: sessions of either are embedded by the first");
+            }
+            tracing::info!(model = %i.name, kind = i.about.kind, descriptor_id = %i.descriptor_id, dim = i.dim, "serving a model");
+            models.push(engine);
         }
         let engine = models[0].clone();
-        let calibrator = cfg.calibration.resolve(&engine.info().descriptor_id)?;
-        if let Some(c) = &calibrator {
-            tracing::info!(descriptor_id = %c.descriptor_id, loop_confidence = c.loop_confidence, "calibrated confidence");
+        // Each model's calibrator from the one file: the default's must be there when the file
+        // was given on purpose; another model's is used when the file holds one.
+        let mut calibrators = vec![cfg.calibration.resolve(&engine.info().descriptor_id)?];
+        for e in &models[1..] {
+            calibrators.push(cfg.calibration.resolve_other(&e.info().name, &e.info().descriptor_id));
+        }
+        for (e, c) in models.iter().zip(&calibrators) {
+            if let Some(c) = c {
+                tracing::info!(model = %e.info().name, descriptor_id = %c.descriptor_id, loop_confidence = c.loop_confidence, "calibrated confidence");
+            }
         }
         let auth = Arc::new(Auth::new(&cfg.auth, store.clone())?);
         let tls = match &cfg.tls {
@@ -276,7 +292,8 @@ impl RunningServer {
                             write and delete every session"
             );
         }
-        let service = LoopService::with_models(models, store, cfg.verify.clone(), calibrator);
+        let service =
+            LoopService::with_models(models.into_iter().zip(calibrators).collect(), store, cfg.verify.clone());
         let jobs = Arc::new(super::jobs::Jobs::new(cfg.max_jobs, cfg.max_jobs_per_tenant, service.store.clone()));
         let (shutdown, rx) = tokio::sync::watch::channel(false);
         if let Some(c) = &cfg.cluster {

@@ -2,8 +2,7 @@ use super::{ModelArgs, VariantArgs};
 use crate::eval::run::{run as run_eval, EvalSpec};
 use crate::index::graph::IndexKind;
 use crate::index::query::VerifyOptions;
-use crate::model::script::ScriptModel;
-use crate::model::served::Served;
+use crate::model::served::{load_folder, Folder, Served};
 use crate::verify::features::{parse_descriptor_bits, FeatureParams, DEFAULT_DESCRIPTOR_BITS};
 use crate::verify::geometric::Intrinsics;
 use anyhow::{Context, Result};
@@ -15,9 +14,9 @@ use std::process::ExitCode;
 pub struct EvalArgs {
     #[command(flatten)]
     pub model: ModelArgs,
-    /// A TorchScript model's folder (model.pt and model.json, as `loopd serve --models` serves
-    /// each; docs/models.md): its descriptors are evaluated instead of the built-in network's,
-    /// through the same engine the server runs it on.
+    /// A model folder, as `loopd serve --models` serves each (docs/models.md: a TorchScript
+    /// model, or the built-in network on --weights with the folder's heads): its descriptors are
+    /// evaluated instead of --heads', through the same engine the server runs it on.
     #[arg(long = "model", conflicts_with = "server")]
     pub script_model: Option<PathBuf>,
     /// Ordered image sequence (files in natural name order); the reference traversal when
@@ -163,7 +162,13 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let (model, weights): (Served, &std::path::Path) = match &a.script_model {
         Some(dir) => {
             let device = crate::model::device::parse_device(&a.model.device)?;
-            (ScriptModel::load(dir, device).with_context(|| format!("model {}", dir.display()))?.into(), dir)
+            // A `builtin` folder runs on --weights (its own heads instead of --heads).
+            let base = match Folder::read(dir).with_context(|| format!("model {}", dir.display()))? {
+                Folder::Builtin(_) => Some(a.model.load()?),
+                Folder::Script => None,
+            };
+            let model = load_folder(dir, device, base.as_ref()).with_context(|| format!("model {}", dir.display()))?;
+            (model, if base.is_some() { &a.model.weights } else { dir })
         }
         None => (a.model.load()?.into(), &a.model.weights),
     };

@@ -46,9 +46,14 @@ pub struct TrainArgs {
     /// select at the size the heads will serve at.
     #[arg(long, value_parser = crate::model::config::parse_input_size)]
     pub val_input_size: Option<(u32, u32)>,
-    /// Output folder: heads.safetensors, checkpoint, state.json, loss.png, validation.png.
+    /// Output folder: heads.safetensors, checkpoint, state.json, loss.png, validation.png, and
+    /// model.json (the folder is a model `serve --models` serves).
     #[arg(long)]
     pub out: PathBuf,
+    /// The model's name when --out is served as a model folder (`serve --models`: train writes
+    /// its model.json); default: --out's folder name.
+    #[arg(long)]
+    pub name: Option<String>,
     #[arg(long, default_value_t = 8)]
     pub epochs: usize,
     /// Places per batch (P).
@@ -196,6 +201,7 @@ pub fn run(a: TrainArgs) -> Result<ExitCode> {
         set,
         val,
         out: a.out.clone(),
+        name: a.name.clone(),
         recipe: Recipe {
             epochs: a.epochs,
             places_per_batch: a.batch_places,

@@ -35,6 +35,9 @@ pub struct Model {
     pub heads_sha256: Option<String>,
     /// Learned whitening from the heads file, applied after pooling.
     whitening: Option<heads::Whitening>,
+    /// The weight file and configuration it was loaded with (before any heads): what a
+    /// `builtin` model folder builds its own network from ([`Model::sibling`]).
+    pub origin: Option<(std::path::PathBuf, ModelConfig)>,
     vs: VarStore,
     net: Network,
 }
@@ -53,6 +56,7 @@ impl Model {
             weights_file_sha256: "none".into(),
             heads_sha256: None,
             whitening: None,
+            origin: None,
             vs,
             net,
         })
@@ -67,7 +71,8 @@ impl Model {
         if let Some(norm) = file.metadata.get(weights::META_NORMALIZATION) {
             config.preprocess.normalization = serde_json::from_value::<Normalization>(norm.as_str().into())?;
         }
-        let mut model = Self::new(config, Device::Cpu, DType::F32)?;
+        let mut model = Self::new(config.clone(), Device::Cpu, DType::F32)?;
+        model.origin = Some((path.to_path_buf(), config));
         let report = weights::load_into(&model.vs, &file)?;
         model.weights_sha256 = file.sha256.clone();
         model.weights_file_sha256 = file.file_sha256.clone();
@@ -103,6 +108,20 @@ impl Model {
         self.whitening = loaded.whitening.take().map(|w| w.to_device(self.device));
         self.heads_sha256 = Some(loaded.sha256.clone());
         Ok(loaded)
+    }
+
+    /// Another network on the same weights, configuration, device and precision as this one,
+    /// with `heads` on top (None: the identity heads, the plain backbone); this model's own heads
+    /// are not carried over. Needs a model loaded from a weight file ([`Model::load`]).
+    pub fn sibling(&self, heads: Option<&Path>) -> Result<Self> {
+        let Some((weights, config)) = &self.origin else {
+            bail!("this network was not loaded from a weight file: no other network can share its weights")
+        };
+        let (mut model, _) = Self::load(weights, config.clone(), self.device, self.dtype)?;
+        if let Some(h) = heads {
+            model.load_heads(h).map_err(|e| e.context(format!("loading heads {}", h.display())))?;
+        }
+        Ok(model)
     }
 
     pub fn set_pooling(&mut self, pooling: config::Pooling) {

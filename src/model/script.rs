@@ -15,6 +15,9 @@ use tch::{Device, Kind, Tensor};
 /// The manifest's file name in a model folder.
 pub const MANIFEST: &str = "model.json";
 
+/// The `kind` of a TorchScript model folder's manifest (the default).
+pub const SCRIPT_KIND: &str = "torchscript";
+
 /// Largest input side a manifest may ask for (pixels).
 const MAX_SIDE: u32 = 4096;
 /// Largest descriptor a model may output.
@@ -70,6 +73,9 @@ fn imagenet_std() -> [f32; 3] {
 pub struct Manifest {
     /// The model's name in the server (sessions name it): letters, digits, `-`, `_`, `.`.
     pub name: String,
+    /// "torchscript" when given (the default kind of a model folder; `served::Folder`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kind: Option<String>,
     /// The TorchScript file, relative to the folder.
     #[serde(default = "model_pt")]
     pub file: String,
@@ -105,6 +111,9 @@ impl Manifest {
 
     fn check(&self) -> Result<()> {
         check_name(&self.name)?;
+        if let Some(k) = self.kind.as_deref().filter(|k| *k != SCRIPT_KIND) {
+            bail!("kind {k:?}: a TorchScript model's manifest says \"{SCRIPT_KIND}\" or nothing");
+        }
         let i = &self.input;
         if !(32..=MAX_SIDE).contains(&i.width) || !(32..=MAX_SIDE).contains(&i.height) {
             bail!("input {}x{}: each side must be 32 to {MAX_SIDE} pixels", i.width, i.height);

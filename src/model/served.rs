@@ -4,10 +4,12 @@ use super::config::Preprocess;
 use super::device::device_name;
 use super::network::Variant;
 use super::preprocess::{decode, to_input, ImageError, ImageLimits};
-use super::script::{Input, ScriptModel};
+use super::script::{check_name, Input, ScriptModel, MANIFEST};
 use super::Model;
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use image::RgbImage;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
 use tch::{Device, Tensor};
 
 /// The built-in network's name in a server that serves several models (`--model-name`).
@@ -23,17 +25,26 @@ pub enum Net {
 pub struct Served {
     pub name: String,
     pub net: Net,
+    /// The license and source a `builtin` model folder states (None: the built-in network's own).
+    pub notes: Option<(String, String)>,
+}
+
+impl Served {
+    /// The built-in network under `name`.
+    pub fn builtin(name: &str, m: Model) -> Self {
+        Self { name: name.into(), net: Net::Builtin(Box::new(m)), notes: None }
+    }
 }
 
 impl From<Model> for Served {
     fn from(m: Model) -> Self {
-        Self { name: BUILTIN_NAME.into(), net: Net::Builtin(Box::new(m)) }
+        Self::builtin(BUILTIN_NAME, m)
     }
 }
 
 impl From<ScriptModel> for Served {
     fn from(m: ScriptModel) -> Self {
-        Self { name: m.manifest.name.clone(), net: Net::Script(Box::new(m)) }
+        Self { name: m.manifest.name.clone(), net: Net::Script(Box::new(m)), notes: None }
     }
 }
 
@@ -137,6 +148,10 @@ impl Served {
 
     pub fn about(&self) -> About {
         match &self.net {
+            Net::Builtin(_) if self.notes.is_some() => {
+                let (license, source) = self.notes.clone().unwrap_or_default();
+                About { kind: "builtin", license, source }
+            }
             Net::Builtin(m) => About {
                 kind: "builtin",
                 license: "loopd's network (docs/model.md); weights as shipped".into(),
@@ -164,10 +179,116 @@ impl Served {
     }
 }
 
-/// The TorchScript models of a model repository (`serve --models DIR`): each subfolder of `dir`
-/// one model (its `model.json` and TorchScript file), loaded onto `device`, by folder name order.
-pub fn load_dir(dir: &std::path::Path, device: Device) -> Result<Vec<Served>> {
-    use anyhow::Context;
+/// `model.json` of a folder that serves the built-in network (`"kind": "builtin"`): the
+/// server's weights, input size, pooling, device and precision, with the folder's heads file
+/// (`loopd train`'s output, which writes this manifest) or none (the plain backbone, which sessions
+/// made with `--heads none` or before heads were shipped hold). A folder without `kind` (or with
+/// `"kind": "torchscript"`) is a TorchScript model ([`super::script::Manifest`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BuiltinManifest {
+    /// The model's name in the server.
+    pub name: String,
+    /// Always "builtin".
+    pub kind: String,
+    /// The heads file, a name inside the folder; absent: the plain backbone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub heads: Option<String>,
+    #[serde(default)]
+    pub license: String,
+    #[serde(default)]
+    pub source: String,
+}
+
+/// The kind a `builtin` manifest states.
+pub const BUILTIN_KIND: &str = "builtin";
+
+impl BuiltinManifest {
+    fn check(&self) -> Result<()> {
+        check_name(&self.name)?;
+        if let Some(h) = &self.heads {
+            if h.is_empty() || Path::new(h).components().count() != 1 {
+                bail!("heads {h:?}: a file name inside the model folder");
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes `dir/model.json`.
+    pub fn write(&self, dir: &Path) -> Result<()> {
+        self.check()?;
+        let path = dir.join(MANIFEST);
+        std::fs::write(&path, serde_json::to_string_pretty(self)? + "\n")
+            .with_context(|| format!("writing {}", path.display()))
+    }
+}
+
+/// What a model folder holds, by its manifest's `kind`.
+pub enum Folder {
+    Script,
+    Builtin(BuiltinManifest),
+}
+
+impl Folder {
+    /// Reads `dir/model.json`'s kind (a `builtin` manifest whole and checked).
+    pub fn read(dir: &Path) -> Result<Self> {
+        let path = dir.join(MANIFEST);
+        let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+        let v: serde_json::Value =
+            serde_json::from_str(&text).with_context(|| format!("{}: not a model manifest", path.display()))?;
+        match v.get("kind").map(|k| k.as_str()) {
+            None | Some(Some(super::script::SCRIPT_KIND)) => Ok(Self::Script),
+            Some(Some(BUILTIN_KIND)) => {
+                let m: BuiltinManifest =
+                    serde_json::from_value(v).with_context(|| format!("{}: not a model manifest", path.display()))?;
+                m.check().with_context(|| format!("{}", path.display()))?;
+                Ok(Self::Builtin(m))
+            }
+            Some(_) => bail!(
+                "{}: kind {}: \"{}\" (a TorchScript file, the default) or \"{BUILTIN_KIND}\" (the built-in network, \
+                 with the folder's heads or none)",
+                path.display(),
+                v["kind"],
+                super::script::SCRIPT_KIND
+            ),
+        }
+    }
+}
+
+/// The model in folder `dir`: a TorchScript model onto `device`, or the built-in network on
+/// `base`'s weights and configuration with the folder's heads (a `builtin` manifest; `base`: the
+/// server's default network, or what a command's model flags load).
+pub fn load_folder(dir: &Path, device: Device, base: Option<&Model>) -> Result<Served> {
+    match Folder::read(dir)? {
+        Folder::Script => Ok(ScriptModel::load(dir, device)?.into()),
+        Folder::Builtin(m) => {
+            let Some(base) = base else {
+                bail!(
+                    "{}: a builtin model folder runs on the built-in network's weights, and none are loaded here",
+                    dir.display()
+                )
+            };
+            let heads = m.heads.as_ref().map(|h| dir.join(h));
+            let model = base.sibling(heads.as_deref())?;
+            let name = m.name.clone();
+            let (license, source) = (m.license, m.source);
+            let source = if source.is_empty() {
+                match &heads {
+                    Some(h) => format!("the built-in network with the heads {}", h.display()),
+                    None => "the built-in network with the identity heads (the plain backbone)".into(),
+                }
+            } else {
+                source
+            };
+            Ok(Served { name, net: Net::Builtin(Box::new(model)), notes: Some((license, source)) })
+        }
+    }
+}
+
+/// The models of a model repository (`serve --models DIR`): each subfolder of `dir` one model
+/// ([`load_folder`]: a TorchScript model onto `device`, or the built-in network on `base`), by
+/// folder name order.
+pub fn load_dir(dir: &std::path::Path, device: Device, base: Option<&Model>) -> Result<Vec<Served>> {
     let mut folders: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
         .with_context(|| format!("reading the model folder {}", dir.display()))?
         .map(|e| e.map(|e| e.path()))
@@ -175,8 +296,5 @@ pub fn load_dir(dir: &std::path::Path, device: Device) -> Result<Vec<Served>> {
         .with_context(|| format!("reading the model folder {}", dir.display()))?;
     folders.retain(|p| p.is_dir());
     folders.sort();
-    folders
-        .iter()
-        .map(|f| ScriptModel::load(f, device).map(Served::from).with_context(|| format!("model {}", f.display())))
-        .collect()
+    folders.iter().map(|f| load_folder(f, device, base).with_context(|| format!("model {}", f.display()))).collect()
 }

@@ -326,6 +326,12 @@ impl Store {
         dispatch!(async self, create_session(self, meta))
     }
 
+    /// Whether other nodes serve the same sessions (the cluster's log), so that a request this
+    /// node cannot serve may go to another.
+    pub fn is_shared(&self) -> bool {
+        matches!(self.backend, backend::Backend::Cluster(_))
+    }
+
     pub fn session(&self, id: &str) -> Result<Arc<Session>, StoreError> {
         self.sessions.read().get(id).cloned().ok_or_else(|| StoreError::SessionNotFound(id.into()))
     }

@@ -13,6 +13,8 @@ pub use super::validate::{validate, ValScore};
 use crate::model::config::ModelConfig;
 use crate::model::network::Variant;
 use crate::model::preprocess::{decode, normalize, resized_rgb, ImageLimits};
+use crate::model::script::check_name;
+use crate::model::served::{BuiltinManifest, BUILTIN_KIND};
 use crate::model::Model;
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -121,10 +123,11 @@ pub fn train(spec: &TrainSpec) -> Result<Outcome> {
         bail!("a batch needs at least 2 places and 2 views per place");
     }
     check_images(&spec.set)?;
+    let name = model_name(spec)?;
     std::fs::create_dir_all(&spec.out)?;
     let ckpt = spec.out.join("checkpoint.safetensors");
     let best = spec.out.join("best.safetensors");
-    let final_path = spec.out.join("heads.safetensors");
+    let final_path = spec.out.join(HEADS_FILE);
 
     // The heads' random starting values (all but their zeroed last layers) come from the seed.
     tch::manual_seed(r.seed as i64);
@@ -252,5 +255,45 @@ pub fn train(spec: &TrainSpec) -> Result<Outcome> {
     };
     save_state(&spec.out, &st)?;
     plot(&spec.out, &st)?;
+    // The folder is a model a server serves (`serve --models`) beside its default network.
+    let scores: Vec<String> = final_validation
+        .iter()
+        .map(|v| {
+            format!(
+                "{} R@100P {:.3} recall@1 {:.3} AP {:.3}",
+                v.set, v.recall_at_100_precision, v.recall_at_1, v.average_precision
+            )
+        })
+        .collect();
+    BuiltinManifest {
+        name,
+        kind: BUILTIN_KIND.into(),
+        heads: Some(HEADS_FILE.into()),
+        license: String::new(),
+        source: format!(
+            "loopd train on {}: best epoch {} of {}, {} steps; validation: {}",
+            spec.set.sources.join("; "),
+            st.best_epoch,
+            st.epochs_done,
+            st.step,
+            if scores.is_empty() { "none".into() } else { scores.join(", ") }
+        ),
+    }
+    .write(&spec.out)?;
     Ok(Outcome { heads: final_path, state: st, final_validation })
+}
+
+/// The heads file `train` writes into its output folder.
+pub const HEADS_FILE: &str = "heads.safetensors";
+
+/// The name the output folder is served under: `spec.name`, or the folder's own name.
+fn model_name(spec: &TrainSpec) -> Result<String> {
+    let name = match &spec.name {
+        Some(n) => n.clone(),
+        None => spec.out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
+    };
+    check_name(&name).with_context(|| {
+        format!("the trained model's name (--name, default the --out folder's name {})", spec.out.display())
+    })?;
+    Ok(name)
 }

@@ -49,6 +49,9 @@ pub struct TrainSpec {
     pub set: TrainSet,
     pub val: Vec<ValSet>,
     pub out: PathBuf,
+    /// The trained model's name when `out` is served as a model folder (`serve --models`; its
+    /// `model.json`); None: the folder's name.
+    pub name: Option<String>,
     pub recipe: Recipe,
     pub whiten: Option<WhitenSpec>,
     pub resume: bool,

@@ -162,6 +162,25 @@ impl Calibration {
     }
 }
 
+impl Calibration {
+    /// The calibrator for another served model's descriptor space (`serve --models`): the same
+    /// file's, when it holds one; otherwise none, said once in the log (the file is the default
+    /// model's, and need not cover every other model).
+    pub fn resolve_other(&self, model: &str, descriptor_id: &str) -> Option<Calibrator> {
+        let path = match self {
+            Self::Off => return None,
+            Self::File(p) | Self::Shipped(p) => p,
+        };
+        match CalibrationFile::read(path).and_then(|f| f.for_descriptors(path, descriptor_id)) {
+            Ok(c) => Some(c),
+            Err(e) => {
+                tracing::info!(model, descriptor_id, reason = %e, "no calibrated confidence for this model: its answers carry none");
+                None
+            }
+        }
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum CalibrationError {
     #[error("reading {0}: {1}")]

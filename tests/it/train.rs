@@ -81,6 +81,7 @@ fn tiny_spec(out: &Path, epochs: usize, seed: u64) -> TrainSpec {
             filter: None,
         }],
         out: out.to_path_buf(),
+        name: None,
         recipe: recipe(epochs, seed),
         whiten: None,
         resume: false,
@@ -377,4 +378,129 @@ fn sessions_named_by_earlier_releases_stay_usable_without_heads() {
     headed.load_heads(&root().join(loopd::cli::DEFAULT_HEADS)).unwrap();
     let engine = Engine::start(headed, cfg(), ImageLimits::default()).unwrap();
     assert!(!engine.info().compatible(&byte_id) && !engine.info().compatible(&pre_hash));
+}
+
+/// An upgrade adds models, it does not replace one (issue #39): `loopd train`'s output folder is a
+/// model (`model.json`, kind builtin, its heads), and so is a folder naming the plain backbone.
+/// A server whose default is the shipped heads serves both beside it (`serve --models`): a
+/// session made by a server without heads (the plain backbone) keeps taking images, answered with
+/// the plain backbone's own calibrated confidence, and each model's descriptors are the network's
+/// with those heads, computed in process.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+// The training tests' turn is held for the whole test on purpose (servers build models, which
+// draw from torch's generator); it is a std mutex only these tests take, never an await's target.
+#[allow(clippy::await_holding_lock)]
+async fn a_trained_folder_and_the_plain_backbone_are_served_beside_the_shipped_heads() {
+    use loopd::api::server::{RunningServer, ServerConfig};
+    use loopd::pb::{self, loopd_client::LoopdClient};
+    use serde_json::{json, Value};
+
+    let _turn = turn();
+    let repo = tempfile::tempdir().unwrap();
+    let trained = repo.path().join("nordland-r1");
+    let mut spec = tiny_spec(&trained, 1, 3);
+    spec.whiten = Some(WhitenSpec { dim: Some(16), frames: 48, shrink: 0.1 });
+    let heads = tokio::task::spawn_blocking(move || train(&spec).unwrap().heads).await.unwrap();
+    let manifest: Value = serde_json::from_slice(&std::fs::read(trained.join("model.json")).unwrap()).unwrap();
+    assert_eq!((manifest["name"].as_str(), manifest["kind"].as_str()), (Some("nordland-r1"), Some("builtin")));
+    assert_eq!(manifest["heads"], "heads.safetensors");
+    assert!(manifest["source"].as_str().unwrap().contains("nordland-val R@100P"), "{manifest}");
+    std::fs::create_dir(repo.path().join("plain")).unwrap();
+    std::fs::write(repo.path().join("plain/model.json"), json!({"name": "plain", "kind": "builtin"}).to_string())
+        .unwrap();
+
+    // A session of the plain backbone, made by a server without heads.
+    let data_dir = tempfile::tempdir().unwrap();
+    let config = |models: Option<&Path>| ServerConfig {
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        models_dir: models.map(Path::to_path_buf),
+        ..ServerConfig::on_loopback(data_dir.path().to_path_buf())
+    };
+    let old = RunningServer::start(config(None), imagenet_model()).await.unwrap();
+    let mut grpc = LoopdClient::connect(format!("http://{}", old.grpc_addr)).await.unwrap();
+    grpc.create_session(pb::CreateSessionRequest { id: "old".into(), ..Default::default() }).await.unwrap();
+    let first = grpc.add_and_query(desk_frame("old", 1)).await.unwrap().into_inner();
+    let old_id = old.service.engine().info().descriptor_id.clone();
+    old.shutdown().await.unwrap();
+
+    // The upgraded server: the shipped heads by default, the repository beside them.
+    let server = RunningServer::start(config(Some(repo.path())), shipped_model()).await.unwrap();
+    let base = format!("http://{}", server.http_addr);
+    let http = reqwest::Client::new();
+    let listed: Value = http.get(format!("{base}/v1/models")).send().await.unwrap().json().await.unwrap();
+    let models = listed["models"].as_array().unwrap();
+    let field = |name: &str, f: &str| models.iter().find(|m| m["name"] == name).unwrap()[f].clone();
+    let names: Vec<&str> = models.iter().map(|m| m["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["loopd", "nordland-r1", "plain"], "{listed}");
+    assert!(models.iter().all(|m| m["kind"] == "builtin"), "{listed}");
+    assert_eq!(field("plain", "descriptor_id"), old_id.as_str(), "the plain backbone is the old session's space");
+    assert_eq!(field("nordland-r1", "dim"), 16);
+    assert!(field("nordland-r1", "source").as_str().unwrap().contains("loopd train on"), "{listed}");
+    assert_ne!(field("loopd", "descriptor_id"), field("nordland-r1", "descriptor_id"));
+
+    // Each model's descriptors: the network with its heads, in process (the trained heads on the
+    // server's input size, not the training's).
+    let image = std::fs::read(data("slambook2-ch11/10.png")).unwrap();
+    let input = to_input(&decode(&image, &ImageLimits::default()).unwrap(), &ModelConfig::default().preprocess);
+    let mut headed = imagenet_model();
+    headed.load_heads(&heads).unwrap();
+    for (name, model) in [("plain", imagenet_model()), ("nordland-r1", headed)] {
+        let r: Value = http
+            .post(format!("{base}/v1/embed?model={name}"))
+            .body(image.clone())
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        assert_eq!(r["descriptor_id"], model.descriptor_id(Variant::FULL));
+        let got: Vec<f32> = serde_json::from_value(r["descriptor"].clone()).unwrap();
+        let want: Vec<f32> =
+            model.descriptors(std::slice::from_ref(&input), Variant::FULL).unwrap().squeeze_dim(0).try_into().unwrap();
+        assert_eq!(got.len(), want.len(), "{name}");
+        let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        eprintln!("{name}: server against the network in process, max abs diff {worst:e}");
+        assert!(worst <= 1e-6, "{name}: {worst}");
+    }
+
+    // The old session takes images again, embedded by the plain backbone: the revisit 10 -> 1 is
+    // its best candidate, verified, with the plain backbone's calibrated confidence (the shipped
+    // calibration file covers it).
+    let mut grpc = LoopdClient::connect(format!("http://{}", server.grpc_addr)).await.unwrap();
+    let revisit = grpc.add_and_query(desk_frame("old", 10)).await.unwrap().into_inner();
+    let best = &revisit.matches[0];
+    assert_eq!(best.frame_id, first.frame_id, "{:?}", revisit.matches);
+    assert!(best.verification.as_ref().is_some_and(|v| v.verified), "{best:?}");
+    let c = best.confidence.expect("the plain backbone's calibrated confidence");
+    assert!((0.0..=1.0).contains(&c), "{c}");
+    // A session of the trained model: its space, its descriptors' length.
+    let s = grpc
+        .create_session(pb::CreateSessionRequest {
+            id: "trained".into(),
+            model: "nordland-r1".into(),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!((s.model.as_str(), s.dim), ("nordland-r1", 16));
+    for i in [1, 10] {
+        grpc.add_and_query(desk_frame("trained", i)).await.unwrap();
+    }
+    let listed: Value = http.get(format!("{base}/v1/sessions/trained")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(listed["frames"], 2, "{listed}");
+    server.shutdown().await.unwrap();
+
+    // `loopd models check` runs the trained folder on --weights and names the same space.
+    let checked = loopd_bin()
+        .args(["models", "check"])
+        .arg(&trained)
+        .arg("--image")
+        .arg(data("slambook2-ch11/1.png"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&checked.stdout);
+    assert!(checked.status.success(), "{stdout}{}", String::from_utf8_lossy(&checked.stderr));
+    assert!(stdout.contains(&format!("descriptor id {}", s.descriptor_id)), "{stdout}");
 }

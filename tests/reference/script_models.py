@@ -10,6 +10,11 @@ usage:
       writes OUT/small-resnet (RGB, torchvision normalisation, 512-d, not normalised),
       OUT/small-bgr (BGR, caffe means, aspect kept, 256-d, normalised by the model), and
       broken ones: OUT/wrong-dim (the manifest says 128, the model gives 512) and OUT/nan.
+  script_models.py reference WEIGHTS OUT
+      writes OUT/reference: the independent PyTorch implementation of loopd's own network
+      (reference.py: ResNet50, attention, fusion; identity heads) on a loopd weight file, traced
+      to TorchScript with its weights inside, input as loopd's built-in network takes it (224x224
+      stretched, caffe: BGR minus the ImageNet mean), 2048-d, normalised.
   script_models.py compare MODEL_DIR SAVED_DIR
       SAVED_DIR: what `loopd models check MODEL_DIR --save SAVED_DIR` wrote (per image: the
       resized RGB, loopd's input and loopd's descriptor). Recomputes the input from the RGB by
@@ -118,6 +123,44 @@ def export(out):
     save(out, "nan", NotFinite(), {"input": {"width": 64, "height": 64}, "output_dim": 8})
 
 
+class Reference(nn.Module):
+    """reference.py's descriptor (attention and fusion on) with a weight file's tensors as buffers."""
+
+    def __init__(self, weights, v1):
+        super().__init__()
+        self.names = sorted(weights)
+        for i, k in enumerate(self.names):
+            self.register_buffer(f"w{i}", weights[k])
+        self.v1 = v1
+
+    def forward(self, x):
+        import reference
+        w = {k: getattr(self, f"w{i}") for i, k in enumerate(self.names)}
+        return reference.descriptor(w, x, True, True, self.v1)
+
+
+def export_reference(weights, out):
+    from safetensors import safe_open
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    w = {k: t.float() for k, t in load_file(weights).items()}
+    with safe_open(weights, "pt") as f:
+        meta = f.metadata() or {}
+    if meta.get("normalization", "caffe") != "caffe":
+        raise SystemExit(f"{weights}: normalization {meta.get('normalization')}, this export writes caffe inputs")
+    net = Reference(w, meta.get("stride_layout", "v1") == "v1").eval()
+    d = os.path.join(out, "reference")
+    os.makedirs(d, exist_ok=True)
+    with torch.no_grad():
+        traced = torch.jit.trace(net, torch.zeros(1, 3, 224, 224))
+    torch.jit.save(traced, os.path.join(d, "model.pt"))
+    manifest = {"name": "reference", "input": {"width": 224, "height": 224, "channels": "bgr", "scale": 1.0,
+                                               "mean": [103.939, 116.779, 123.68], "std": [1.0, 1.0, 1.0]},
+                "output_dim": 2048, "normalized": True,
+                "license": "the weight file's", "source": "tests/reference/reference.py, traced"}
+    with open(os.path.join(d, "model.json"), "w") as f:
+        json.dump(manifest, f, indent=2)
+
+
 def compare(model_dir, saved_dir):
     with open(os.path.join(model_dir, "model.json")) as f:
         m = json.load(f)
@@ -147,6 +190,9 @@ def compare(model_dir, saved_dir):
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "export":
         export(sys.argv[2])
+        sys.exit(0)
+    if len(sys.argv) == 4 and sys.argv[1] == "reference":
+        export_reference(sys.argv[2], sys.argv[3])
         sys.exit(0)
     if len(sys.argv) == 4 and sys.argv[1] == "compare":
         sys.exit(compare(sys.argv[2], sys.argv[3]))

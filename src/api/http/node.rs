@@ -94,7 +94,7 @@ pub async fn info(State(s): State<Arc<AppState>>) -> Json<Info> {
         max_batch: e.config().max_batch,
         max_image_bytes: i.limits.max_bytes,
         version: env!("CARGO_PKG_VERSION"),
-        loop_confidence: s.service.calibrator.as_ref().map(|c| c.loop_confidence),
+        loop_confidence: s.service.calibrator().map(|c| c.loop_confidence),
     })
 }
 

@@ -256,10 +256,7 @@ async fn run(
     let defaults = held.as_ref().map(|s| s.meta.default_query.clone()).unwrap_or_default();
     let asked = seq.options.over(&job_defaults());
     let effective = asked.apply(&defaults);
-    let calibrated = service
-        .calibrator
-        .as_ref()
-        .filter(|_| held.as_ref().is_some_and(|s| engine.info().compatible(&s.meta.descriptor_id)));
+    let calibrated = held.as_ref().and_then(|s| service.calibrator_of(&s.meta.descriptor_id));
     let min_confidence = asked.min_confidence.unwrap_or_else(|| calibrated.map_or(0.0, |c| c.loop_confidence));
     let opts = QueryOverrides { min_confidence: Some(0.0), ..asked };
     let features = effective.verify.geometric || service.keeps_features();

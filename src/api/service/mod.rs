@@ -29,8 +29,9 @@ pub struct LoopService {
     pub models: Vec<Engine>,
     pub store: Arc<Store>,
     pub verifier: Verifier,
-    /// The confidence of this server's descriptor space (None: answers carry none).
-    pub calibrator: Option<Arc<Calibrator>>,
+    /// Each served model's calibrated confidence, in `models`' order (None: its sessions'
+    /// answers carry none).
+    pub calibrators: Vec<Option<Arc<Calibrator>>>,
     /// Answers whose candidates could not be kept (storage failed after the frame was stored).
     pub loops_not_kept: Arc<std::sync::atomic::AtomicU64>,
 }
@@ -296,24 +297,16 @@ pub struct CreateSession {
 
 impl LoopService {
     pub fn new(engine: Engine, store: Arc<Store>, verify: VerifyConfig, calibrator: Option<Calibrator>) -> Self {
-        Self::with_models(vec![engine], store, verify, calibrator)
+        Self::with_models(vec![(engine, calibrator)], store, verify)
     }
 
-    /// A service of several models' engines, the default first (at least one).
-    pub fn with_models(
-        models: Vec<Engine>,
-        store: Arc<Store>,
-        verify: VerifyConfig,
-        calibrator: Option<Calibrator>,
-    ) -> Self {
+    /// A service of several models' engines, each with its calibrator, the default first (at
+    /// least one).
+    pub fn with_models(models: Vec<(Engine, Option<Calibrator>)>, store: Arc<Store>, verify: VerifyConfig) -> Self {
         assert!(!models.is_empty(), "a service serves at least one model");
-        let service = Self {
-            models,
-            store,
-            verifier: Verifier::new(verify),
-            calibrator: calibrator.map(Arc::new),
-            loops_not_kept: Default::default(),
-        };
+        let (models, calibrators) = models.into_iter().map(|(e, c)| (e, c.map(Arc::new))).unzip();
+        let service =
+            Self { models, store, verifier: Verifier::new(verify), calibrators, loops_not_kept: Default::default() };
         service.report_foreign_sessions();
         service
     }
@@ -342,6 +335,18 @@ impl LoopService {
     /// The served model whose descriptors a session of descriptor space `id` holds.
     pub fn model_of(&self, id: &str) -> Option<&Engine> {
         self.models.iter().find(|e| e.info().compatible(id))
+    }
+
+    /// The default model's calibrated confidence.
+    pub fn calibrator(&self) -> Option<&Arc<Calibrator>> {
+        self.calibrators[0].as_ref()
+    }
+
+    /// The calibrated confidence of the served model whose descriptors a session of descriptor
+    /// space `id` holds (None: not served here, or not calibrated).
+    pub fn calibrator_of(&self, id: &str) -> Option<Arc<Calibrator>> {
+        let i = self.models.iter().position(|e| e.info().compatible(id))?;
+        self.calibrators[i].clone()
     }
 
     /// The served model called `name` (None or empty: the default).
@@ -434,9 +439,23 @@ impl LoopService {
         Ok(s.frame(frame_id)?.0)
     }
 
-    /// The served model that embeds images for a session: the one of its descriptor space.
+    /// The served model that embeds images for a session: the one of its descriptor space. A
+    /// cluster node without it answers UNAVAILABLE / 503 (nodes are meant to serve the same
+    /// models: another node, or this one once restarted with the model, can take the image); a
+    /// server of its own answers FAILED_PRECONDITION / 409.
     pub fn engine_of(&self, s: &Session) -> Result<&Engine, ApiError> {
         self.model_of(&s.meta.descriptor_id).ok_or_else(|| {
+            if self.store.is_shared() {
+                return ApiError::Unavailable(format!(
+                    "session '{}' is of model '{}' ({}), which this node does not serve (it serves {}): the \
+                     cluster's nodes must serve the same models; send it to a node that serves '{}'",
+                    s.meta.id,
+                    s.meta.model.as_deref().unwrap_or("(the default of the server that made it)"),
+                    s.meta.descriptor_id,
+                    self.served_ids(),
+                    s.meta.model.as_deref().unwrap_or("it"),
+                ));
+            }
             ApiError::FailedPrecondition(format!(
                 "session '{}' holds descriptors of '{}', but this server computes {}: images sent to it \
                  would mix descriptor spaces (run a server with the session's model, or create a new session)",

@@ -4,10 +4,9 @@
 use super::*;
 
 impl LoopService {
-    /// The calibrator for a session's descriptors: the server's, when the session is in its
-    /// descriptor space.
+    /// The calibrator for a session's descriptors: its served model's.
     fn calibrator_for(&self, s: &Session) -> Option<Arc<Calibrator>> {
-        self.calibrator.clone().filter(|_| self.engine().info().compatible(&s.meta.descriptor_id))
+        self.calibrator_of(&s.meta.descriptor_id)
     }
 
     /// A query may ask for a minimum confidence only where confidences are calibrated.

@@ -748,3 +748,72 @@ async fn sequence_jobs_are_answered_through_every_node() {
         n.shutdown().await.unwrap();
     }
 }
+
+/// The cluster's nodes are meant to serve the same models (issue #39): a node that lacks a
+/// session's model answers its images UNAVAILABLE / 503 naming the model (a load balancer tries
+/// another node), while it still stores the session's bare descriptors and answers its queries;
+/// the node that serves the model embeds them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+#[ignore = "needs scripts/pg-replicated (PostgreSQL primary + synchronous standby)"]
+async fn a_node_without_a_sessions_model_answers_unavailable_naming_it() {
+    let dirs: Vec<_> = (0..2).map(|_| tempfile::tempdir().unwrap()).collect();
+    // A serves the shipped heads as a model of a repository beside its default; B does not.
+    let repo = tempfile::tempdir().unwrap();
+    let folder = repo.path().join("shipped");
+    std::fs::create_dir(&folder).unwrap();
+    std::os::unix::fs::symlink(crate::common::root().join(loopd::cli::DEFAULT_HEADS), folder.join("heads.safetensors"))
+        .unwrap();
+    let manifest = serde_json::json!({"name": "shipped", "kind": "builtin", "heads": "heads.safetensors"});
+    std::fs::write(folder.join("model.json"), manifest.to_string()).unwrap();
+    let cfg = |dir: &std::path::Path, models: Option<&std::path::Path>| ServerConfig {
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        cluster: Some(ClusterConfig { connections: 4, ..ClusterConfig::new(&env("LOOPD_PG_URL")) }),
+        models_dir: models.map(|m| m.to_path_buf()),
+        ..ServerConfig::on_loopback(dir.to_path_buf())
+    };
+    let a = RunningServer::start(cfg(dirs[0].path(), Some(repo.path())), imagenet_model()).await.unwrap();
+    let b = RunningServer::start(cfg(dirs[1].path(), None), imagenet_model()).await.unwrap();
+    let (mut ga, mut gb) = (client(&a).await, client(&b).await);
+    let id = "model-on-one-node";
+    let _ = ga.delete_session(pb::DeleteSessionRequest { id: id.into() }).await;
+    let made = ga
+        .create_session(pb::CreateSessionRequest { id: id.into(), model: "shipped".into(), ..Default::default() })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(made.model, "shipped");
+    let through_a = ga.add_and_query(desk_frame(id, 1)).await.unwrap().into_inner();
+
+    // B: gRPC UNAVAILABLE and HTTP 503, both naming the model and the session.
+    let refused = gb.add_and_query(desk_frame(id, 2)).await.unwrap_err();
+    assert_eq!(refused.code(), Code::Unavailable, "{refused:?}");
+    assert!(refused.message().contains("model 'shipped'") && refused.message().contains(id), "{}", refused.message());
+    let form = reqwest::multipart::Form::new().text("robot_id", "desk").text("timestamp", "2").part(
+        "image",
+        reqwest::multipart::Part::bytes(std::fs::read(data("slambook2-ch11/2.png")).unwrap()).file_name("2.png"),
+    );
+    let http = reqwest::Client::new();
+    let r = http.post(format!("http://{}/v1/sessions/{id}/frames", b.http_addr)).multipart(form).send().await.unwrap();
+    assert_eq!(r.status(), 503);
+    assert!(r.text().await.unwrap().contains("model 'shipped'"));
+
+    // B still stores the session's bare descriptors (A's embedding) and answers queries by them.
+    let e: serde_json::Value = http
+        .post(format!("http://{}/v1/embed?model=shipped", a.http_addr))
+        .body(std::fs::read(data("slambook2-ch11/10.png")).unwrap())
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let d: Vec<f32> = serde_json::from_value(e["descriptor"].clone()).unwrap();
+    assert_eq!(d.len() as u32, made.dim);
+    let stored = gb.add_frame(descriptor_frame(id, "desk", 10.0, &d, None)).await.unwrap().into_inner().frame_id;
+    let answer = gb.query(query(id, by_descriptor(&d), 2)).await.unwrap().into_inner();
+    let mut ids: Vec<u64> = answer.matches.iter().map(|m| m.frame_id).collect();
+    ids.sort();
+    assert_eq!(ids, [through_a.frame_id, stored], "{:?}", answer.matches);
+    assert_eq!(frames_in(&mut ga, id).await, Ok(2));
+    ga.delete_session(pb::DeleteSessionRequest { id: id.into() }).await.unwrap();
+}

@@ -379,3 +379,68 @@ async fn one_server_serves_the_builtin_model_and_two_torchscript_models_over_bot
     let e = format!("{e:#}");
     assert!(e.contains("nan") && e.contains("not a model manifest"), "{e}");
 }
+
+/// The paper's network as a user would bring it: `tests/reference/reference.py` (an independent
+/// PyTorch implementation of loopd's network) with seeded random heads, traced to TorchScript and
+/// served beside the built-in network holding the same weights. Both give the same descriptors
+/// of real images (max abs diff printed; the two implementations differ only in rounding), and a
+/// bare descriptor of one is refused by a session of the other (two descriptor spaces).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_reference_network_as_torchscript_gives_the_builtin_descriptors() {
+    use loopd::api::server::{RunningServer, ServerConfig};
+    use loopd::engine::EngineConfig;
+    use loopd::model::weights::{named_tensors, WeightFile};
+    use serde_json::{json, Value};
+
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("random-heads.safetensors");
+    let model = imagenet_model();
+    model.randomize(11, true);
+    let meta = [("stride_layout".to_string(), "v1".to_string())].into_iter().collect();
+    WeightFile::write(&weights, &named_tensors(model.var_store()), meta).unwrap();
+    let repo = dir.path().join("repo");
+    let out = python(&["reference".as_ref(), weights.as_os_str(), repo.as_os_str()]);
+    assert!(out.status.success(), "exporting the reference: {}", String::from_utf8_lossy(&out.stderr));
+    let (model, _) = loopd::model::Model::load(
+        &weights,
+        loopd::model::config::ModelConfig::default(),
+        tch::Device::Cpu,
+        loopd::model::device::DType::F32,
+    )
+    .unwrap();
+    let data_dir = tempfile::tempdir().unwrap();
+    let cfg = ServerConfig {
+        engine: EngineConfig { max_batch: 4, warm_up: false, ..Default::default() },
+        models_dir: Some(repo.clone()),
+        ..ServerConfig::on_loopback(data_dir.path().to_path_buf())
+    };
+    let server = RunningServer::start(cfg, model).await.unwrap();
+    let (base, http) = (format!("http://{}", server.http_addr), reqwest::Client::new());
+    let embed = |model: &'static str, img: &'static str| {
+        let (http, base) = (http.clone(), base.clone());
+        async move {
+            let r = http.post(format!("{base}/v1/embed?model={model}")).body(std::fs::read(data(img)).unwrap());
+            let r: Value = r.send().await.unwrap().json().await.unwrap();
+            let d: Vec<f32> = serde_json::from_value(r["descriptor"].clone()).unwrap();
+            (r["descriptor_id"].as_str().unwrap().to_string(), d)
+        }
+    };
+    let mut worst = 0f32;
+    for img in ["slambook2-ch11/1.png", "slambook2-ch11/10.png", "photos/dog.jpg"] {
+        let ((builtin_id, a), (reference_id, b)) = (embed("loopd", img).await, embed("reference", img).await);
+        assert_ne!(builtin_id, reference_id);
+        assert_eq!((a.len(), b.len()), (2048, 2048));
+        worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(worst, f32::max);
+    }
+    eprintln!("the reference network as TorchScript against the built-in network: max abs diff {worst:e}");
+    assert!(worst <= 1e-5, "{worst}");
+    // Two spaces all the same: a reference descriptor sent to a built-in session is refused.
+    let (reference_id, d) = embed("reference", "photos/dog.jpg").await;
+    let r = http.post(format!("{base}/v1/sessions")).json(&json!({"id": "b"})).send().await.unwrap();
+    assert_eq!(r.status(), 201);
+    let body = json!({"robot_id": "r", "timestamp": 0.0, "descriptor": d, "descriptor_id": reference_id});
+    let r = http.post(format!("{base}/v1/sessions/b/frames")).json(&body).send().await.unwrap();
+    assert_eq!(r.status(), 409);
+    assert!(r.text().await.unwrap().contains("reference"));
+    server.shutdown().await.unwrap();
+}
