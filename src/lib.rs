@@ -10,6 +10,8 @@
 //! - `client/`: the one client of the remote subcommands (export, ingest, tenant, eval
 //!   --server): address, key, CA, client certificate; HTTP and gRPC. Reads the wire types of
 //!   `api::wire` and `pb`, nothing else of the server.
+//! - `ros2/`: `loopd ros2`, the ROS 2 bridge node (ros2-client): camera topics in, keyframes to a
+//!   server through `client/`'s gRPC client, loop closures out; decodes pixels with `bags/`.
 //! - `train/`: the paper's attention and fusion heads and learned whitening on real data; uses
 //!   `eval` for its validation.
 //! - `eval/`: `loopd eval` (recall at 100% precision, recall@1, AP, the confidence sweep, plots);
@@ -49,6 +51,7 @@ pub mod index;
 pub mod inspect;
 pub mod model;
 pub mod pb;
+pub mod ros2;
 pub mod store;
 pub mod train;
 pub mod verify;

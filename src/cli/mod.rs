@@ -7,6 +7,7 @@ mod export;
 mod images;
 mod ingest;
 mod models;
+mod ros2;
 mod serve;
 mod tenant;
 mod train;
@@ -59,6 +60,9 @@ pub enum Command {
     /// A ROS bag (MCAP, rosbag2 folder, ROS 1) as a sequence job on a running server; without
     /// --session, the bag's topics.
     Ingest(ingest::IngestArgs),
+    /// A ROS 2 node between a fleet's camera topics and a server: keyframes in, loop closures
+    /// out (loopd_msgs/LoopClosure, visualization_msgs/MarkerArray; docs/ros2.md).
+    Ros2(ros2::Ros2Args),
     /// The HTTP API's OpenAPI document (YAML), generated from the routes this build serves:
     /// `loopd openapi > openapi.yaml`.
     Openapi,
@@ -165,6 +169,7 @@ pub fn run(cli: Cli) -> Result<ExitCode> {
         Command::Tenant(a) => tenant::run(a),
         Command::Export(a) => export::run(a),
         Command::Ingest(a) => ingest::run(a),
+        Command::Ros2(a) => ros2::run(a),
         Command::Openapi => {
             print!("{}", crate::api::http::doc::yaml().map_err(anyhow::Error::msg)?);
             Ok(ExitCode::SUCCESS)
