@@ -123,6 +123,7 @@ struct Robot {
 }
 
 const POSES_KEPT: usize = 512;
+const LOGGED_REASONS: usize = 64;
 
 impl Robot {
     fn pose_at(&self, stamp: f64, tolerance: f64) -> Option<Pose> {
@@ -135,9 +136,12 @@ impl Robot {
             .map(|(_, p)| *p)
     }
 
-    /// Logs a rejection the first time its reason comes up for this robot.
+    /// Logs a rejection the first time its reason comes up for this robot, for the first
+    /// `LOGGED_REASONS` reasons (a server's refusals name the frame: months of them must not
+    /// grow the set); the rest are counted only.
     fn first_time(&self, what: &str) -> bool {
-        self.logged.lock().insert(what.to_string())
+        let mut logged = self.logged.lock();
+        logged.len() < LOGGED_REASONS && logged.insert(what.to_string())
     }
 }
 
@@ -280,8 +284,14 @@ impl Fleet {
             }
             let from = (answer.frame_id, robot.name.as_str(), robot.index, k.stamp, k.camera_frame.as_str());
             let l = LoopClosure::of(session, from, self.index_of(&m.robot_id), rank, m);
-            tracing::info!(robot = %robot.name, frame = answer.frame_id, to_robot = %m.robot_id, to_frame = m.frame_id,
-                score = m.score, inliers = l.inliers, verified, "loop closure published");
+            // Verified loops at info; the unverified candidates of --publish all at debug.
+            if verified {
+                tracing::info!(robot = %robot.name, frame = answer.frame_id, to_robot = %m.robot_id,
+                    to_frame = m.frame_id, score = m.score, inliers = l.inliers, "verified loop closure published");
+            } else {
+                tracing::debug!(robot = %robot.name, frame = answer.frame_id, to_robot = %m.robot_id,
+                    to_frame = m.frame_id, score = m.score, inliers = l.inliers, "loop candidate published");
+            }
             if let (Some(a), Some(b)) = (&k.pose, &m.pose) {
                 let b = Pose { x: b.x, y: b.y, z: b.z, qx: b.qx, qy: b.qy, qz: b.qz, qw: b.qw };
                 let id = self.markers.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
