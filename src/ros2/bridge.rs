@@ -678,6 +678,35 @@ fn subscription<M: 'static>(
     node.create_subscription(&t, Some(qos)).map_err(|e| anyhow::anyhow!("subscribing {topic}: {e:?}"))
 }
 
+/// A topic's reader task: each message to `on`, or (one that does not decode) a rejection of
+/// `what`, counted and logged.
+#[allow(clippy::too_many_arguments)]
+fn reader<M: serde::de::DeserializeOwned + 'static>(
+    node: &mut Node,
+    topic: &str,
+    (package, ty): (&str, &str),
+    qos: QosProfile,
+    fleet: &Arc<Fleet>,
+    robot: &Arc<Robot>,
+    what: &'static str,
+    on: impl Fn(&Arc<Robot>, M) + 'static,
+) -> Result<tokio::task::JoinHandle<()>> {
+    let s: Subscription<M> = subscription(node, topic, (package, ty), qos)?;
+    let (fleet, robot) = (fleet.clone(), robot.clone());
+    let type_name = format!("{package}/{ty}");
+    Ok(tokio::task::spawn_local(async move {
+        loop {
+            match s.async_take().await {
+                Ok((m, _)) => on(&robot, m),
+                Err(e) => {
+                    fleet.reject(&robot, what, &format!("not a {type_name}: {e}"));
+                    pause().await;
+                }
+            }
+        }
+    }))
+}
+
 /// Subscribes a discovered topic if a pattern names it: its reader task, None when no pattern does.
 fn subscribe(
     fleet: &Arc<Fleet>,
@@ -714,81 +743,47 @@ fn subscribe(
     // Camera topics: best effort (what camera drivers publish; a reliable reader would not
     // match a best-effort writer), keep last --depth.
     let sensor = QosProfile::subscription_default().history(ros2_client::qos::History::KeepLast { depth: cfg.depth });
-    let f = fleet.clone();
-    let t = topic.to_string();
+    let (f, t) = (fleet.clone(), topic.to_string());
     let reader = match kind {
-        Kind::Raw => {
-            let s: Subscription<Image> = subscription(node, topic, ("sensor_msgs", "Image"), sensor)?;
-            tokio::task::spawn_local(async move {
-                loop {
-                    match s.async_take().await {
-                        Ok((m, _)) => f.on_image(&robot, &t, Camera::Raw(m)),
-                        Err(e) => {
-                            f.reject(&robot, "image", &format!("not a sensor_msgs/Image: {e}"));
-                            pause().await;
-                        }
-                    }
-                }
-            })
-        }
+        Kind::Raw => reader(node, topic, ("sensor_msgs", "Image"), sensor, fleet, &robot, "image", move |r, m| {
+            f.on_image(r, &t, Camera::Raw(m))
+        })?,
         Kind::Compressed => {
-            let s: Subscription<CompressedImage> =
-                subscription(node, topic, ("sensor_msgs", "CompressedImage"), sensor)?;
-            tokio::task::spawn_local(async move {
-                loop {
-                    match s.async_take().await {
-                        Ok((m, _)) => f.on_image(&robot, &t, Camera::Compressed(m)),
-                        Err(e) => {
-                            f.reject(&robot, "image", &format!("not a sensor_msgs/CompressedImage: {e}"));
-                            pause().await;
-                        }
-                    }
-                }
-            })
+            reader(node, topic, ("sensor_msgs", "CompressedImage"), sensor, fleet, &robot, "image", move |r, m| {
+                f.on_image(r, &t, Camera::Compressed(m))
+            })?
         }
         Kind::CameraInfo => {
-            let s: Subscription<CameraInfo> = subscription(node, topic, ("sensor_msgs", "CameraInfo"), sensor)?;
             let camera = camera.clone();
-            tokio::task::spawn_local(async move {
-                loop {
-                    match s
-                        .async_take()
-                        .await
-                        .map_err(|e| format!("not a sensor_msgs/CameraInfo: {e}"))
-                        .and_then(|(m, _)| m.camera())
-                    {
-                        Ok(c) => {
-                            camera.send_if_modified(|held| {
-                                let first = held.is_none();
-                                if first {
-                                    tracing::info!(robot = %robot.name, fx = c.fx, fy = c.fy, cx = c.cx, cy = c.cy, "camera intrinsics from CameraInfo");
-                                    *held = Some(c);
-                                }
-                                first
-                            });
-                        }
-                        Err(why) => {
-                            f.reject(&robot, "camera_info", &why);
-                            pause().await;
-                        }
+            reader(
+                node,
+                topic,
+                ("sensor_msgs", "CameraInfo"),
+                sensor,
+                fleet,
+                &robot,
+                "camera_info",
+                move |r, m: CameraInfo| match m.camera() {
+                    Ok(c) => {
+                        camera.send_if_modified(|held| {
+                            let first = held.is_none();
+                            if first {
+                                tracing::info!(robot = %r.name, fx = c.fx, fy = c.fy, cx = c.cx, cy = c.cy,
+                                    "camera intrinsics from CameraInfo");
+                                *held = Some(c);
+                            }
+                            first
+                        });
                     }
-                }
-            })
+                    Err(why) => f.reject(r, "camera_info", &why),
+                },
+            )?
         }
+        // Odometry: reliable or best effort writers both match a best-effort reader.
         Kind::Odometry => {
-            // Odometry: reliable or best effort writers both match a best-effort reader.
-            let s: Subscription<Odometry> = subscription(node, topic, ("nav_msgs", "Odometry"), sensor)?;
-            tokio::task::spawn_local(async move {
-                loop {
-                    match s.async_take().await {
-                        Ok((m, _)) => f.on_odometry(&robot, &m),
-                        Err(e) => {
-                            f.reject(&robot, "odometry", &format!("not a nav_msgs/Odometry: {e}"));
-                            pause().await;
-                        }
-                    }
-                }
-            })
+            reader(node, topic, ("nav_msgs", "Odometry"), sensor, fleet, &robot, "odometry", move |r, m| {
+                f.on_odometry(r, &m)
+            })?
         }
     };
     tracing::info!(topic, kind = ?kind, robot = %robot_name, "subscribed");
