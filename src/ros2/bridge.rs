@@ -265,7 +265,7 @@ impl Fleet {
             session_id: session.to_string(),
             robot_id: robot.name.clone(),
             timestamp: Some(k.stamp.seconds()),
-            pose: k.pose.map(|p| pb::Pose { x: p.x, y: p.y, z: p.z, qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw }),
+            pose: k.pose.map(pb::Pose::from),
             metadata_json: metadata.to_string(),
             content: Some(pb::add_frame_request::Content::Image(k.image.clone())),
             options: Some(self.cfg.options),
@@ -293,7 +293,7 @@ impl Fleet {
                     to_frame = m.frame_id, score = m.score, inliers = l.inliers, "loop candidate published");
             }
             if let (Some(a), Some(b)) = (&k.pose, &m.pose) {
-                let b = Pose { x: b.x, y: b.y, z: b.z, qx: b.qx, qy: b.qy, qz: b.qz, qw: b.qw };
+                let b = Pose::from(*b);
                 let id = self.markers.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 out.markers.markers.push(Marker::line(&self.cfg.map_frame, id, k.stamp, a, &b, verified));
             }

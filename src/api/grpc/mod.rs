@@ -26,11 +26,11 @@ pub struct GrpcApi {
 }
 
 fn to_pose(p: Option<pb::Pose>) -> Option<Pose> {
-    p.map(|p| Pose { x: p.x, y: p.y, z: p.z, qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw })
+    p.map(Pose::from)
 }
 
 fn from_pose(p: Option<Pose>) -> Option<pb::Pose> {
-    p.map(|p| pb::Pose { x: p.x, y: p.y, z: p.z, qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw })
+    p.map(pb::Pose::from)
 }
 
 fn overrides(o: Option<pb::QueryOptions>) -> Result<QueryOverrides, ApiError> {
