@@ -52,17 +52,26 @@ fn sets() -> Vec<Set> {
     ]
 }
 
-/// The server's descriptor of each image (the model it serves; nothing stored).
+/// The server's descriptor of each image (the model it serves; nothing stored), in the files'
+/// order. Eight requests in flight, so that the engine batches them as it batches a fleet's
+/// frames: one at a time, each forward pass was a batch of one.
 async fn embed(http: &str, files: &[PathBuf]) -> Vec<Vec<f32>> {
+    use futures::StreamExt;
     let client = reqwest::Client::new();
-    let mut out = Vec::with_capacity(files.len());
-    for f in files {
-        let r = client.post(format!("{http}/v1/embed")).body(std::fs::read(f).unwrap()).send().await.unwrap();
-        assert_eq!(r.status(), 200, "{}", f.display());
-        let v: serde_json::Value = r.json().await.unwrap();
-        out.push(v["descriptor"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect());
-    }
-    out
+    let url = format!("{http}/v1/embed");
+    futures::stream::iter(files)
+        .map(|f| {
+            let request = client.post(&url).body(std::fs::read(f).unwrap());
+            async move {
+                let r = request.send().await.unwrap();
+                assert_eq!(r.status(), 200, "{}", f.display());
+                let v: serde_json::Value = r.json().await.unwrap();
+                v["descriptor"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect::<Vec<f32>>()
+            }
+        })
+        .buffered(8)
+        .collect()
+        .await
 }
 
 async fn create(c: &mut LoopdClient<Channel>, id: &str, index: pb::IndexKind) {
