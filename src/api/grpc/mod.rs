@@ -25,14 +25,6 @@ pub struct GrpcApi {
     pub shutdown: tokio::sync::watch::Receiver<bool>,
 }
 
-fn to_pose(p: Option<pb::Pose>) -> Option<Pose> {
-    p.map(Pose::from)
-}
-
-fn from_pose(p: Option<Pose>) -> Option<pb::Pose> {
-    p.map(pb::Pose::from)
-}
-
 fn overrides(o: Option<pb::QueryOptions>) -> Result<QueryOverrides, ApiError> {
     let Some(o) = o else { return Ok(QueryOverrides::default()) };
     let scope = match pb::Scope::try_from(o.scope) {
@@ -149,7 +141,7 @@ fn matches_to_pb(m: Vec<LoopMatch>) -> Vec<pb::Match> {
             score: m.score,
             robot_id: m.robot_id,
             timestamp: m.timestamp,
-            pose: from_pose(m.pose),
+            pose: m.pose.map(pb::Pose::from),
             verification: verification.map(verification_to_pb),
             sequence: sequence.map(|s| pb::SequenceCheck {
                 score: s.score,
@@ -201,7 +193,7 @@ fn frame_input(r: pb::AddFrameRequest) -> Result<(String, FrameInput, QueryOverr
         robot_id: r.robot_id,
         timestamp: r.timestamp,
         frame_id: r.frame_id,
-        pose: to_pose(r.pose),
+        pose: r.pose.map(Pose::from),
         metadata,
         content,
         thumbnail: None,
