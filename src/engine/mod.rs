@@ -60,7 +60,8 @@ pub struct EngineConfig {
     pub queue_capacity: usize,
     /// Threads decoding and resizing images at once.
     pub decode_workers: usize,
-    /// Run a forward pass at start so the first request does not pay for allocation/autotuning.
+    /// Run forward passes at start (`warm_up`: every batch shape on a CUDA device, batch 1 on the
+    /// CPU) so that the first requests do not pay for allocation and autotuning.
     pub warm_up: bool,
     /// Pad each batch with zero inputs up to the next power of two (or `max_batch`), so only
     /// those few batch shapes ever run (`--batch-buckets`; None: on a CUDA device, off on the
@@ -154,12 +155,19 @@ pub fn buckets(max_batch: usize) -> Vec<usize> {
     b
 }
 
-/// One forward pass at each batch size that will run (every bucket, or batch 1 and `max_batch`)
-/// on zeros: first-call allocations, kernels and cuDNN's plans for those shapes.
+/// Forward passes on zeros: on a CUDA device one at each batch size that will run (every bucket,
+/// or batch 1 and `max_batch`): first-call allocations, kernels and cuDNN's plans for those
+/// shapes. On the CPU batch 1 only (the thread's OpenMP team, the weights' first touch): there a
+/// first batch of 32 ran as fast without its own warm-up (2.5 s either way), while warming it
+/// up held readiness back 2.7 s and cost about 5 CPU-s per start (docs/performance.md, "Engine").
 fn warm_up(model: &Served, max_batch: usize, buckets: bool) -> anyhow::Result<()> {
     let (width, height) = model.input().size();
     let input = Tensor::zeros([3, height as i64, width as i64], tch::kind::FLOAT_CPU);
-    let sizes = if buckets { self::buckets(max_batch) } else { vec![1, max_batch] };
+    let sizes = match (model.device().is_cuda(), buckets) {
+        (false, _) => vec![1],
+        (true, true) => self::buckets(max_batch),
+        (true, false) => vec![1, max_batch],
+    };
     for n in sizes {
         let batch: Vec<Tensor> = (0..n).map(|_| input.shallow_clone()).collect();
         let _ = model.descriptors(&batch, Variant::FULL)?;
