@@ -206,14 +206,25 @@ async fn stalled_connections_are_closed_and_the_limit_holds() {
     // loaded machine: one of the 8 refused with a reset right after the trickled body's 408).
     drop(s);
     http_connections_settle(&server).await;
+    // The connection that asked for /metrics last is closed on the client's side, but the server
+    // may not have read that close yet (CI's run of 2c3707f, the fuzz build beside it: one of the
+    // 8 closed unanswered). So a connection closed unanswered is tried again:
+    // what is asserted is that 8 are then held and answered at once, and the 9th is not (within 1 s,
+    // under the idle deadline of 2 s that would free the slots the held ones take).
     let mut held = Vec::new();
-    for _ in 0..8 {
+    let t = Instant::now();
+    while held.len() < 8 {
         let mut s = TcpStream::connect(server.http).await.unwrap();
-        s.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
+        let _ = s.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n").await;
         let mut buf = [0u8; 256];
-        assert!(s.read(&mut buf).await.unwrap() > 0, "answered under the limit");
-        held.push(s);
+        if matches!(s.read(&mut buf).await, Ok(n) if n > 0) {
+            held.push(s);
+            continue;
+        }
+        assert!(t.elapsed() < Duration::from_secs(1), "only {} connections answered under a limit of 8", held.len());
+        tokio::time::sleep(Duration::from_millis(20)).await;
     }
+    eprintln!("8 connections held under a limit of 8 after {:.2?}", t.elapsed());
     let mut ninth = TcpStream::connect(server.http).await.unwrap();
     let _ = ninth.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n").await;
     let took = closed_within(&mut ninth, Duration::from_millis(500)).await;
