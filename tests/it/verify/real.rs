@@ -245,3 +245,70 @@ fn compact_features_keep_the_verified_loops_at_half_the_bytes() {
         println!("{f}: {} keypoints, {bytes} bytes (256 bits: {whole}; version 1: {})", g.len(), 16 + 36 * g.len());
     }
 }
+
+/// Whether 112-bit features want another Lowe ratio than 256-bit ones (#33: EuRoC 1 -> 0 with the
+/// essential matrix keeps 89.6% of its inliers at 112 bits, just beyond the 10% asked). Measured on
+/// a training split apart from the judged sets: consecutive-but-one frames of three indoor-tower
+/// clips (40 each; two pairs span two clips) and every pair of the five TUM desk-sweep frames of rgbd-slambook2; matches and
+/// F inliers at 256 bits and ratio 0.80 against 112 bits at 0.80-0.84, then the judged EuRoC loops
+/// (F and E) at the same ratios. Prints; asserts nothing (a measurement, docs/verification.md):
+/// `cargo test --release --test it -- --ignored verify::real::the_lowe_ratio_for_112_bit_features --nocapture`
+#[test]
+#[ignore]
+fn the_lowe_ratio_for_112_bit_features() {
+    let d = shared().expect("../shared/data");
+    let mut files: Vec<PathBuf> = Vec::new();
+    for floor in ["basement0", "basement2", "basement3"] {
+        let dir = d.join("ie-tower-indoor/processed_frames").join(floor);
+        let mut v: Vec<PathBuf> = std::fs::read_dir(&dir).expect("tower frames").map(|e| e.unwrap().path()).collect();
+        v.sort();
+        files.extend(v.into_iter().take(40));
+    }
+    let mut pairs: Vec<(PathBuf, PathBuf)> = files.windows(3).map(|w| (w[0].clone(), w[2].clone())).collect();
+    let mut desk: Vec<PathBuf> = std::fs::read_dir(d.join("rgbd-slambook2/tum-desk/color"))
+        .expect("tum-desk")
+        .map(|e| e.unwrap().path())
+        .collect();
+    desk.sort();
+    for i in 0..desk.len() {
+        for j in i + 1..desk.len() {
+            pairs.push((desk[i].clone(), desk[j].clone()));
+        }
+    }
+    let kept = |p: &Path, bits: usize| stored(p, bits).0;
+    let train: Vec<_> = pairs.iter().map(|(a, b)| (kept(a, 256), kept(b, 256), kept(a, 112), kept(b, 112))).collect();
+    let p = VerifyParams::default();
+    let sum = |set: &[(Features, Features)], q: &VerifyParams| {
+        set.iter().map(|(a, b)| verify(a, b, None, q)).fold((0, 0), |(m, i), v| (m + v.matches, i + v.inliers))
+    };
+    let whole: Vec<_> = train.iter().map(|t| (t.0.clone(), t.1.clone())).collect();
+    let short: Vec<_> = train.iter().map(|t| (t.2.clone(), t.3.clone())).collect();
+    let (m256, i256) = sum(&whole, &p);
+    let k = euroc_k();
+    let euroc = |q: usize, c: usize, bits: usize, cam: Option<&Intrinsics>, ratio: f32| {
+        let f = |i: usize| kept(&d.join(format!("euroc-lcd/left_img_{i}.png")), bits);
+        verify(&f(q), &f(c), cam, &VerifyParams { ratio, ..p.clone() }).inliers
+    };
+    println!("training split: {} pairs; 256 bits at 0.80: {m256} matches, {i256} F inliers", pairs.len());
+    println!("| ratio at 112 bits | matches | F inliers | EuRoC 1 -> 0 F / E | EuRoC 3 -> 2 F / E |");
+    println!(
+        "| 256 bits, 0.80 | {m256} | {i256} | {} / {} | {} / {} |",
+        euroc(1, 0, 256, None, 0.8),
+        euroc(1, 0, 256, Some(&k), 0.8),
+        euroc(3, 2, 256, None, 0.8),
+        euroc(3, 2, 256, Some(&k), 0.8)
+    );
+    for r in [0.78f32, 0.80, 0.82, 0.84] {
+        let (m, i) = sum(&short, &VerifyParams { ratio: r, ..p.clone() });
+        let pct = |a: usize, b: usize| 100.0 * (a as f64 / b as f64 - 1.0);
+        println!(
+            "| {r:.2} | {m} ({:+.1}%) | {i} ({:+.1}%) | {} / {} | {} / {} |",
+            pct(m, m256),
+            pct(i, i256),
+            euroc(1, 0, 112, None, r),
+            euroc(1, 0, 112, Some(&k), r),
+            euroc(3, 2, 112, None, r),
+            euroc(3, 2, 112, Some(&k), r)
+        );
+    }
+}
