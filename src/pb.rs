@@ -18,3 +18,16 @@ impl From<crate::index::query::Pose> for Pose {
         Self { x: p.x, y: p.y, z: p.z, qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw }
     }
 }
+
+/// The one rigid transform type (a verified pose, a kept loop's, a client's verdict) on the wire.
+impl From<RelativePose> for crate::store::loops::Transform {
+    fn from(p: RelativePose) -> Self {
+        Self { qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw, tx: p.tx, ty: p.ty, tz: p.tz }
+    }
+}
+
+impl From<crate::store::loops::Transform> for RelativePose {
+    fn from(t: crate::store::loops::Transform) -> Self {
+        Self { qx: t.qx, qy: t.qy, qz: t.qz, qw: t.qw, tx: t.tx, ty: t.ty, tz: t.tz }
+    }
+}

@@ -6,11 +6,6 @@ use crate::auth::Caller;
 use crate::pb;
 use crate::store::loops::{LoopFilter, LoopRecord, Transform};
 
-/// The one rigid transform type (a verified pose, a kept loop's, a client's) as gRPC sends it.
-pub fn pose_to_pb(t: Transform) -> pb::RelativePose {
-    pb::RelativePose { qx: t.qx, qy: t.qy, qz: t.qz, qw: t.qw, tx: t.tx, ty: t.ty, tz: t.tz }
-}
-
 pub fn loop_to_pb(l: LoopRecord) -> pb::Loop {
     pb::Loop {
         query_frame: l.query_frame,
@@ -25,7 +20,7 @@ pub fn loop_to_pb(l: LoopRecord) -> pb::Loop {
         checked: l.checked,
         verified: l.verified,
         inliers: l.inliers,
-        relative_pose: l.relative_pose.map(pose_to_pb),
+        relative_pose: l.relative_pose.map(pb::RelativePose::from),
         metric: l.metric,
         covariance: l.covariance.unwrap_or_default(),
         found: l.found,
@@ -36,7 +31,7 @@ pub fn loop_to_pb(l: LoopRecord) -> pb::Loop {
             .collect(),
         verdict: l.verdict.map(|v| pb::LoopVerdict {
             accepted: v.accepted,
-            relative_pose: v.relative_pose.map(pose_to_pb),
+            relative_pose: v.relative_pose.map(pb::RelativePose::from),
             covariance: v.covariance.unwrap_or_default(),
             at: v.at,
         }),
@@ -70,8 +65,7 @@ pub async fn set_verdict(
     caller: Caller,
     r: pb::SetLoopVerdictRequest,
 ) -> Result<pb::Loop, ApiError> {
-    let pose =
-        r.relative_pose.map(|p| Transform { qx: p.qx, qy: p.qy, qz: p.qz, qw: p.qw, tx: p.tx, ty: p.ty, tz: p.tz });
+    let pose = r.relative_pose.map(Transform::from);
     let covariance = Some(r.covariance).filter(|c| !c.is_empty());
     let pair = (r.query_frame, r.match_frame);
     let record = service.scoped(caller).set_verdict(&r.session_id, pair, r.accepted, pose, covariance).await?;

@@ -98,7 +98,7 @@ fn verification_to_pb(v: Verification) -> pb::Verification {
         inlier_ratio: v.inlier_ratio,
         verified: v.verified,
         reason: v.reason.unwrap_or_default(),
-        relative_pose: v.relative_pose.map(loops::pose_to_pb),
+        relative_pose: v.relative_pose.map(pb::RelativePose::from),
         metric: v.metric,
         covariance: v.covariance.unwrap_or_default(),
         pose_inliers: v.pose_inliers as u32,
