@@ -42,7 +42,8 @@ pub struct ServeArgs {
     #[arg(long, env = "LOOPD_MAX_DELAY_MS", default_value_t = 5)]
     pub max_delay_ms: u64,
     /// Pad batches to powers of two (and --max-batch), so the GPU meets few batch shapes, each
-    /// warmed up at start; auto: on a CUDA device only (docs/performance.md "GPU figures").
+    /// warmed up at start on a CUDA device (the CPU warms up batch 1 only); auto: on a CUDA device
+    /// only (docs/performance.md "GPU figures").
     #[arg(long, env = "LOOPD_BATCH_BUCKETS", value_enum, default_value = "auto")]
     pub batch_buckets: Switch,
     /// While two or more tenants have work for the model, each batch is cut to what runs in this
