@@ -90,6 +90,10 @@ pub struct ServeArgs {
     /// Candidates the approximate index keeps while searching (HNSW efSearch): recall against time.
     #[arg(long, env = "LOOPD_APPROX_EXPANSION", default_value_t = GraphParams::default().expansion_search)]
     pub approx_expansion: usize,
+    /// Candidates the approximate index keeps while linking a new frame (HNSW efConstruction):
+    /// the graph's quality, hence the recall every later search can reach, against build rate.
+    #[arg(long, env = "LOOPD_APPROX_EXPANSION_ADD", default_value_t = GraphParams::default().expansion_add)]
+    pub approx_expansion_add: usize,
     /// A query whose filters leave fewer frames than this is answered by scanning those frames
     /// exactly instead (0: every query of an approximate session goes through the graph).
     #[arg(long, env = "LOOPD_APPROX_EXACT_BELOW", default_value_t = GraphParams::default().exact_below)]
@@ -241,6 +245,7 @@ impl ServeArgs {
                 min_frames: self.approx_min_frames,
                 dims: self.approx_dims,
                 expansion_search: self.approx_expansion.max(1),
+                expansion_add: self.approx_expansion_add.max(1),
                 exact_below: self.approx_exact_below,
                 exact_share: self.approx_exact_share.clamp(0.0, 1.0),
                 save_rows: self.approx_save_frames.max(1),

@@ -186,7 +186,7 @@ impl SessionIndex {
             score,
             robot_id: self.robots[f.robot as usize].clone(),
             timestamp: f.timestamp,
-            pose: f.pose,
+            pose: f.pose.as_deref().copied(),
         }
     }
 }

@@ -88,7 +88,7 @@ impl Default for GraphParams {
             min_frames: 200_000,
             dims: 512,
             connectivity: 16,
-            expansion_add: 64,
+            expansion_add: 128,
             expansion_search: 256,
             candidates_per_result: 16,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),

@@ -77,15 +77,18 @@ impl Rows {
     }
 }
 
+/// A stored frame's record beside its row. Kept small: a map of 10^7 frames holds 10^7 of them
+/// in memory (48 bytes each; the pose boxed, since many robots send none, and the votes a boxed
+/// slice, where an inline pose and a `Vec` made it 112).
 #[derive(Clone, Debug)]
 pub struct FrameMeta {
     pub frame_id: u64,
     pub robot: u32,
     pub timestamp: f64,
-    pub pose: Option<Pose>,
+    pub pose: Option<Box<Pose>>,
     /// The best matches this frame's own query found when it was added (sequence verification's
     /// candidate votes); memory only, empty after a restart.
-    pub votes: Vec<u64>,
+    pub votes: Box<[u64]>,
 }
 
 pub struct SessionIndex {
@@ -322,7 +325,7 @@ impl SessionIndex {
             }
         };
         let row = self.frames.len();
-        self.frames.push(FrameMeta { frame_id, robot, timestamp, pose, votes: Vec::new() });
+        self.frames.push(FrameMeta { frame_id, robot, timestamp, pose: pose.map(Box::new), votes: Box::default() });
         self.by_frame.insert(frame_id, row);
         let ids = &mut self.by_robot[robot as usize];
         match ids.last() {
@@ -351,7 +354,7 @@ impl SessionIndex {
     /// Records the best matches of the query a frame was added with.
     pub fn set_votes(&mut self, frame_id: u64, votes: Vec<u64>) {
         if let Some(&row) = self.by_frame.get(&frame_id) {
-            self.frames[row].votes = votes;
+            self.frames[row].votes = votes.into_boxed_slice();
         }
     }
 
@@ -387,7 +390,7 @@ impl SessionIndex {
             (None, Some(&r)) => &self.by_robot[r as usize],
             (None, None) => &[],
         };
-        ids[ids.len().saturating_sub(n)..].iter().map(|id| self.frames[self.by_frame[id]].votes.clone()).collect()
+        ids[ids.len().saturating_sub(n)..].iter().map(|id| self.frames[self.by_frame[id]].votes.to_vec()).collect()
     }
 
     /// These frames as matches of `q` under the query's filters (unknown or filtered ids left out).

@@ -387,6 +387,8 @@ async fn a_saved_index_is_loaded_at_restart_and_a_corrupt_one_is_rebuilt() {
         "0",
         "--approx-seal-frames",
         "64",
+        "--approx-expansion-add",
+        "96",
     ];
     let file = dir.path().join("graphs/c.usearch");
     let same_answers = |server: String| {

@@ -132,3 +132,11 @@ async fn a_store_keeps_its_sessions_rows_mapped_and_rebuilds_them_when_reopened(
     assert_eq!(answers(&memory), before, "rows in memory answer the same");
     assert!(memory.session("nordland").unwrap().info().bytes_in_memory >= picks.len() * dim * 2);
 }
+
+/// A frame's record is what a map holds in memory per frame beside its (mapped) row: at 10^7
+/// frames every byte of it is 10 MB. 48 bytes (112 with the pose inline and the votes a `Vec`).
+#[test]
+fn a_frame_record_takes_at_most_48_bytes() {
+    let bytes = std::mem::size_of::<loopd::index::FrameMeta>();
+    assert!(bytes <= 48, "{bytes} bytes");
+}
