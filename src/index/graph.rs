@@ -344,6 +344,12 @@ impl Graph {
         self.params
     }
 
+    /// The live part's expansions (when adding, when searching), as its usearch index holds them.
+    pub fn expansions(&self) -> (usize, usize) {
+        let index = self.index.read();
+        (index.expansion_add(), index.expansion_search())
+    }
+
     /// Rows `0..covered()` are in the graph.
     pub fn covered(&self) -> usize {
         self.covered.load(Ordering::Acquire)
@@ -765,6 +771,9 @@ impl Graph {
         index
             .reserve_capacity_and_threads(index.capacity().max(index.size()).max(1024), context_count)
             .map_err(|e| format!("reserving the approximate index: {e}"))?;
+        // Frames added from now on are linked and searched at this server's settings, not the
+        // ones the file was built with.
+        index.change_expansion_add(params.expansion_add);
         index.change_expansion_search(params.expansion_search);
         graph.memory.store(index.memory_usage(), Ordering::Relaxed);
         graph.live_start.store(next, Ordering::Release);

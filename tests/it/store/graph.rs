@@ -140,7 +140,11 @@ fn sealed_parts_answer_as_one_graph_and_load_mapped() {
         assert!(!found.is_empty() && found.iter().all(|r| r % 2 == 1), "row {i}: {found:?}");
     }
     graph.save(&path, dim).unwrap();
+    // A server restarted with other expansions links its new frames at those.
+    let other = GraphParams { expansion_add: 40, expansion_search: 90, ..params };
+    assert_eq!(Graph::load(&path, dim, other, rows.len()).unwrap().expansions(), (40, 90));
     let loaded = Graph::load(&path, dim, params, rows.len()).unwrap();
+    assert_eq!(loaded.expansions(), (params.expansion_add, params.expansion_search));
     assert_eq!(loaded.sealed_parts(), graph.sealed_parts());
     assert_eq!(answers(&loaded), before);
     // Its own memory: the 300 live rows (1,024 slots reserved), not the 4,500 sealed ones.
