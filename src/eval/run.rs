@@ -149,7 +149,10 @@ pub fn embed_files(engine: &Engine, files: &[PathBuf], setup: &EmbedSetup, label
     if let Some(p) = cache {
         std::fs::create_dir_all(p.parent().unwrap_or(Path::new(".")))?;
         let bytes: Vec<u8> = out.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
-        std::fs::write(&p, bytes)?;
+        // Whole or not at all: another eval sharing the folder may read it at any moment.
+        let part = p.with_extension(format!("{}.part", std::process::id()));
+        std::fs::write(&part, bytes)?;
+        std::fs::rename(&part, &p)?;
     }
     Ok(out)
 }

@@ -202,6 +202,45 @@ impl Model {
         });
     }
 
+    /// Draws the heads' starting values for training from `seed`, as the layers' own
+    /// initialisers draw them (tch's defaults: Kaiming uniform weights, bound sqrt(6 / fan-in);
+    /// a linear layer's bias uniform within 1 / sqrt(its inputs); zero-initialised parameters,
+    /// the last layers and the convolutions' biases, stay zero), but from a generator of its own
+    /// in the order of the parameters' names. The initialisers draw from libtorch's global
+    /// generator, which every thread of the process shares: a model loaded on another thread
+    /// between a `manual_seed` and the heads' draws gave the same seed other heads (CI's run of
+    /// `train::the_same_seed_…`, docs/ci.md "Stop 68").
+    pub fn seed_heads(&self, seed: u64) {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let mut vars: Vec<(String, Tensor)> = self.vs.variables().into_iter().collect();
+        vars.sort_by(|a, b| a.0.cmp(&b.0));
+        let fan_in = |size: &[i64]| size.iter().skip(1).product::<i64>().max(1) as f64;
+        let sizes: std::collections::HashMap<String, Vec<i64>> =
+            vars.iter().map(|(n, t)| (n.clone(), t.size())).collect();
+        tch::no_grad(|| {
+            for (name, mut t) in vars {
+                let head = network::HEAD_PREFIXES.iter().any(|p| name.starts_with(p));
+                if !head || t.abs().max().double_value(&[]) == 0.0 {
+                    continue;
+                }
+                let size = t.size();
+                let bound = if size.len() >= 2 {
+                    (6.0 / fan_in(&size)).sqrt()
+                } else {
+                    // A drawn 1-d parameter is a linear layer's bias: its weight's inputs.
+                    let weight = name.strip_suffix("bias").map(|p| format!("{p}weight"));
+                    match weight.and_then(|w| sizes.get(&w)) {
+                        Some(w) if w.len() == 2 => 1.0 / (w[1] as f64).sqrt(),
+                        _ => continue,
+                    }
+                };
+                let values: Vec<f32> = (0..t.numel()).map(|_| rng.random_range(-bound..bound) as f32).collect();
+                t.copy_(&Tensor::from_slice(&values).reshape(&size));
+            }
+        });
+    }
+
     fn batch(&self, inputs: &[Tensor]) -> Result<Tensor> {
         Ok(channels_last(&stack(inputs, self.device, self.dtype.kind())?))
     }

@@ -129,9 +129,12 @@ pub fn train(spec: &TrainSpec) -> Result<Outcome> {
     let best = spec.out.join("best.safetensors");
     let final_path = spec.out.join(HEADS_FILE);
 
-    // The heads' random starting values (all but their zeroed last layers) come from the seed.
-    tch::manual_seed(r.seed as i64);
+    // The heads' random starting values (all but their zeroed last layers) come from the seed,
+    // through a generator of their own: libtorch's global one is shared with every other thread.
     let mut model = load_model(spec, &spec.config, spec.init_heads.as_deref())?;
+    if spec.init_heads.is_none() {
+        model.seed_heads(r.seed);
+    }
     model.set_whitening(None); // trained underneath; refitted after if asked
     let mut st = State::default();
     if spec.resume && spec.out.join("state.json").is_file() && ckpt.is_file() {

@@ -80,7 +80,6 @@ fn eval_on_the_desk_frames_finds_the_loop_writes_figures_and_caches() {
 
 #[test]
 fn eval_two_traversals_of_the_corridor() {
-    let dir = tempfile::tempdir().unwrap();
     let r = eval_json(&[
         "--sequence",
         data("corridor/ref").to_str().unwrap(),
@@ -89,7 +88,7 @@ fn eval_two_traversals_of_the_corridor() {
         "--gt",
         data("corridor/gt.csv").to_str().unwrap(),
         "--cache-dir",
-        dir.path().to_str().unwrap(),
+        process_cache().to_str().unwrap(),
     ]);
     assert_eq!((r["queries"].as_u64(), r["positives"].as_u64()), (Some(111), Some(111)));
     // The store test measured recall@1 0.56 with the same backbone features.

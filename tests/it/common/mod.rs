@@ -5,7 +5,7 @@ pub mod proc;
 use loopd::model::config::ModelConfig;
 use loopd::model::device::DType;
 use loopd::model::Model;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 pub fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -59,6 +59,16 @@ pub fn loopd_bin() -> std::process::Command {
     // model; the shipped heads have their own tests (tests/it/train.rs).
     c.current_dir(root()).env("LOOPD_DEVICE", "cpu").env("LOOPD_HEADS", "none");
     c
+}
+
+/// A descriptor cache (`loopd eval --cache-dir`) that every `loopd eval` of this test process may
+/// share: its entries are computed by this build's binary (the cache's key names the model, its
+/// weights and the files, not the code that embeds them, so a cache kept across builds could hand
+/// a changed network descriptors made before the change; one made per test process cannot). The
+/// Corridor's two traversals are embedded once for both tests that evaluate them.
+pub fn process_cache() -> &'static Path {
+    static DIR: std::sync::OnceLock<tempfile::TempDir> = std::sync::OnceLock::new();
+    DIR.get_or_init(|| tempfile::tempdir().expect("a temporary folder")).path()
 }
 
 /// The model `loopd serve` runs by default: the ImageNet backbone with the shipped heads and

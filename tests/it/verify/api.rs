@@ -281,7 +281,7 @@ async fn sequence_verification_agrees_with_eval_on_the_corridor() {
             .args(["eval", "--sequence", data("corridor/ref").to_str().unwrap()])
             .args(["--query-sequence", data("corridor/query").to_str().unwrap(), "--gt", gt.to_str().unwrap()])
             .args(["--verify", "sequence", "--sequence-length", "10", "--json", "--cache-dir"])
-            .arg(tempfile::tempdir().unwrap().keep())
+            .arg(process_cache())
             .output()
             .unwrap()
     })
