@@ -185,6 +185,49 @@ fn the_same_seed_gives_the_same_heads_and_a_resumed_run_continues() {
     assert_eq!(out.state.losses[6].0, 6, "the resumed run numbers its steps on");
 }
 
+/// The heads' starting values come from the seed alone, whatever else draws from libtorch's
+/// global generator meanwhile (another thread's model load did, and the same seed trained other
+/// heads), in the ranges the layers' own initialisers draw from; zero-initialised ones stay zero.
+#[test]
+fn the_heads_starting_values_come_from_the_seed_alone() {
+    let heads = |m: &Model| -> Vec<(String, Tensor)> {
+        named_tensors(m.var_store()).into_iter().filter(|(n, _)| n.starts_with("attention.")).collect()
+    };
+    let a = imagenet_model();
+    a.seed_heads(5);
+    let _ = Tensor::randn([1000], (Kind::Float, Device::Cpu));
+    let b = imagenet_model();
+    let _ = Tensor::randn([1000], (Kind::Float, Device::Cpu));
+    b.seed_heads(5);
+    let c = imagenet_model();
+    c.seed_heads(6);
+    let (ha, hb, hc) = (heads(&a), heads(&b), heads(&c));
+    assert!(!ha.is_empty());
+    let (mut drawn, mut zero) = (0, 0);
+    for (((n, x), (_, y)), (_, z)) in ha.iter().zip(&hb).zip(&hc) {
+        assert!(x.equal(y), "{n}: the same seed gave other starting values");
+        let max = f64::try_from(x.abs().max()).unwrap();
+        if max == 0.0 {
+            // The last layers (the identity at the start) and the convolutions' biases.
+            zero += 1;
+            assert!(z.equal(x), "{n}");
+            continue;
+        }
+        drawn += 1;
+        assert!(!x.equal(z), "{n}: seeds 5 and 6 gave the same values");
+        let size = x.size();
+        let bound = if size.len() >= 2 {
+            (6.0 / size.iter().skip(1).product::<i64>() as f64).sqrt()
+        } else {
+            let w = ha.iter().find(|(m, _)| *m == n.replace(".bias", ".weight")).unwrap();
+            1.0 / (w.1.size()[1] as f64).sqrt()
+        };
+        // Uniform within the bound: nothing past it, and the largest of many draws close to it.
+        assert!(max <= bound && (x.numel() < 64 || max > 0.8 * bound), "{n}: max {max}, bound {bound}");
+    }
+    assert!(drawn > 0 && zero > 0, "{drawn} drawn, {zero} zero");
+}
+
 /// One Rust step (loss, clipped gradients, AdamW update) equals the PyTorch reference's.
 #[test]
 fn one_training_step_equals_the_pytorch_reference() {
