@@ -14,7 +14,8 @@
 //! filter that leaves few rows gets), so the bench's RSS is the session's.
 //!
 //! env: LOOPD_BENCH_SIZES (default "100000,1000000"), LOOPD_BENCH_QUERIES (default 200),
-//!      LOOPD_BENCH_GRAPH_DIMS, LOOPD_BENCH_M, LOOPD_BENCH_EF_ADD (the graph's settings),
+//!      LOOPD_BENCH_GRAPH_DIMS, LOOPD_BENCH_M, LOOPD_BENCH_EF_ADD, LOOPD_BENCH_SCALAR (f16 or i8)
+//!      (the graph's settings),
 //!      LOOPD_BENCH_FAISS_MAX (largest size FAISS also builds, default 100000; 0: none),
 //!      LOOPD_BENCH_SWEEP_MAX (largest size the search-time settings are swept at, default 100000),
 //!      LOOPD_BENCH_NOISE (the synthetic rows' noise norm, default 0.5),
@@ -58,6 +59,8 @@ fn params() -> GraphParams {
         dims: num("LOOPD_BENCH_GRAPH_DIMS", d.dims),
         connectivity: num("LOOPD_BENCH_M", d.connectivity),
         expansion_add: num("LOOPD_BENCH_EF_ADD", d.expansion_add),
+        scalar: loopd::index::graph::GraphScalar::parse(&env("LOOPD_BENCH_SCALAR", d.scalar.as_str()))
+            .unwrap_or(d.scalar),
         ..d
     }
 }
@@ -289,9 +292,9 @@ fn main() -> anyhow::Result<()> {
     let dim = real[0].len();
     let p = params();
     println!(
-        "approximate index (usearch HNSW, {}-d f16 graph of the {dim}-d f16 rows, M {}, ef add {}, ef search {}, {} threads adding); \
+        "approximate index (usearch HNSW, {}-d {} graph of the {dim}-d f16 rows, M {}, ef add {}, ef search {}, {} threads adding); \
          {} real rows of ../shared/data, the rest synthetic; {nq} real stored-frame queries; exact = loopd's exact scan of the same mapped rows, 2 threads\n",
-        p.dims.min(dim), p.connectivity, p.expansion_add, p.expansion_search, p.threads, real.len()
+        p.dims.min(dim), p.scalar.as_str(), p.connectivity, p.expansion_add, p.expansion_search, p.threads, real.len()
     );
     println!("| n | row dims | sealed parts | median best sim (real / synthetic) | build rows/s | recall@1 | recall@10 | recall@10 by id | p50 ms | p99 ms | exact p50 ms | same robot (1/16): recall@10, p50 ms | time 25%: recall@10, p50 ms | batch-64 q/s | graph bytes/frame | approx GiB in process | of it mapped in, GiB | rows file GiB | RSS GiB | graph reopen s, cold / warm | FAISS HNSWFlat build rows/s | FAISS ef | FAISS recall@10 | FAISS p50 ms |");
     println!("|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");

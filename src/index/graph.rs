@@ -45,6 +45,47 @@ impl IndexKind {
     }
 }
 
+/// How the graph stores each reduced row. The graph only finds candidates (they are re-scored on
+/// the full rows), so its values need only rank neighbours as the rows do.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GraphScalar {
+    /// Half floats, compared by inner product (the rows are unit vectors). Graphs saved before
+    /// i8 existed are f16 (their records name no scalar).
+    #[default]
+    F16,
+    /// Bytes: each row scaled so its largest value is ±127 and rounded, compared by cosine, which
+    /// that scale does not change. The server's default since 2026-12-07: at 10^6 frames (256-d,
+    /// four parts) 404 graph bytes a frame against 660, build 1.26x and p50 0.68x f16's at the
+    /// same recall (docs/performance.md "An i8 graph").
+    I8,
+}
+
+impl GraphScalar {
+    pub fn parse(s: &str) -> Result<Self, String> {
+        match s {
+            "f16" => Ok(Self::F16),
+            "i8" => Ok(Self::I8),
+            _ => Err(format!("'{s}' is not one of f16, i8")),
+        }
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::F16 => "f16",
+            Self::I8 => "i8",
+        }
+    }
+}
+
+/// `row` as an i8 graph holds it: scaled so its largest value is ±127, rounded.
+pub fn to_i8(row: &[f32], out: &mut Vec<i8>) {
+    let max = row.iter().fold(0f32, |m, v| m.max(v.abs()));
+    let scale = if max > 0.0 && max.is_finite() { 127.0 / max } else { 0.0 };
+    out.clear();
+    out.extend(row.iter().map(|v| (v * scale).round().clamp(-127.0, 127.0) as i8));
+}
+
 /// The graph's shape and when `auto` sessions switch to it (docs/storage.md says how each
 /// default was chosen).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -60,7 +101,7 @@ pub struct GraphParams {
     /// Candidates kept while searching (efSearch); a query asking for more results widens it.
     pub expansion_search: usize,
     /// Candidates the graph returns per result asked for (plus 64), re-scored on the full rows:
-    /// the graph ranks by reduced f16 scores.
+    /// the graph ranks by its reduced (i8 or f16) scores.
     pub candidates_per_result: usize,
     /// Threads that add rows to a graph.
     pub threads: usize,
@@ -80,6 +121,8 @@ pub struct GraphParams {
     pub seal_rows: usize,
     /// Bytes of a sealed part's pages a session keeps mapped in before it releases them.
     pub sealed_resident: usize,
+    /// How the graph stores its rows.
+    pub scalar: GraphScalar,
 }
 
 impl Default for GraphParams {
@@ -97,6 +140,7 @@ impl Default for GraphParams {
             save_rows: 50_000,
             seal_rows: 2_000_000,
             sealed_resident: 1 << 30,
+            scalar: GraphScalar::I8,
         }
     }
 }
@@ -167,12 +211,12 @@ impl Sealed {
     /// Maps `file` (rows `start..end` of `dims`-d) and views it as a graph.
     fn open(
         file: &Path,
-        start: usize,
-        end: usize,
-        dims: usize,
+        (start, end): (usize, usize),
+        (dims, scalar): (usize, GraphScalar),
         sha256: String,
         bytes: Option<u64>,
     ) -> Result<Self, String> {
+        let options = Graph::options(dims, &GraphParams { scalar, ..Default::default() });
         let f = std::fs::File::open(file).map_err(|e| format!("{}: {e}", file.display()))?;
         let len = f.metadata().map_err(|e| format!("{}: {e}", file.display()))?.len();
         if bytes.is_some_and(|b| b != len) {
@@ -192,6 +236,9 @@ impl Sealed {
                 meta.dimensions,
                 end - start
             ));
+        }
+        if meta.quantization != options.quantization || meta.metric != options.metric {
+            return Err(format!("{}: not a {} graph", file.display(), scalar.as_str()));
         }
         let index =
             Index::new(&IndexOptions::from(meta)).map_err(|e| format!("creating the approximate index: {e}"))?;
@@ -285,10 +332,14 @@ pub struct Graph {
 
 impl Graph {
     fn options(dims: usize, params: &GraphParams) -> IndexOptions {
+        let (metric, quantization) = match params.scalar {
+            GraphScalar::F16 => (MetricKind::IP, ScalarKind::F16),
+            GraphScalar::I8 => (MetricKind::Cos, ScalarKind::I8),
+        };
         IndexOptions {
             dimensions: dims,
-            metric: MetricKind::IP,
-            quantization: ScalarKind::F16,
+            metric,
+            quantization,
             connectivity: params.connectivity,
             expansion_add: params.expansion_add,
             expansion_search: params.expansion_search,
@@ -417,9 +468,17 @@ impl Graph {
                 let (failed, index) = (&failed, &*index);
                 s.spawn(move || {
                     let _context = self.contexts.take();
+                    let mut bytes = Vec::new();
                     for i in (t..n).step_by(threads) {
                         let row = &reduced[i * self.dims..(i + 1) * self.dims];
-                        if let Err(e) = index.add((start + i) as u64, row) {
+                        let added = match self.params.scalar {
+                            GraphScalar::F16 => index.add((start + i) as u64, row),
+                            GraphScalar::I8 => {
+                                to_i8(row, &mut bytes);
+                                index.add((start + i) as u64, &bytes)
+                            }
+                        };
+                        if let Err(e) = added {
                             *failed.lock().unwrap_or_else(|p| p.into_inner()) = Some(e.to_string());
                             return;
                         }
@@ -437,7 +496,7 @@ impl Graph {
     }
 
     /// Up to `count` rows near `query` (already reduced) among those `allow` passes, best first
-    /// by the graph's (reduced, f16) scores: every part searched, the best `count` of all kept.
+    /// by the graph's (reduced, i8 or f16) scores: every part searched, the best `count` of all kept.
     pub fn search(
         &self,
         query: &[f32],
@@ -479,15 +538,25 @@ impl Graph {
         jobs.extend(sealed.iter().filter(|s| take(s.start..s.end)).map(|s| Some(&**s)));
         let allow = &allow;
         let index = &*index;
+        let mut query_i8 = Vec::new();
+        if self.params.scalar == GraphScalar::I8 {
+            to_i8(query, &mut query_i8);
+        }
+        let query_i8 = &query_i8[..];
+        let scalar = self.params.scalar;
+        let search = move |index: &Index, allow: &dyn Fn(u64) -> bool| match scalar {
+            GraphScalar::F16 => index.filtered_search(query, count, allow),
+            GraphScalar::I8 => index.filtered_search(query_i8, count, allow),
+        };
         let search_one = move |job: &Option<&Sealed>| -> Result<Vec<(f32, u64)>, String> {
             let found = match job {
                 None => {
                     let _context = self.contexts.take();
-                    index.filtered_search(query, count, |key| (key as usize) < covered && allow(key as usize))
+                    search(index, &|key| (key as usize) < covered && allow(key as usize))
                 }
                 Some(part) => {
                     let _context = part.contexts.take();
-                    part.index.filtered_search(query, count, |key| allow(key as usize))
+                    search(&part.index, &|key| allow(key as usize))
                 }
             }
             .map_err(Self::search_failed)?;
@@ -563,7 +632,7 @@ impl Graph {
         let sha256 = sha256_file(&tmp)?;
         std::fs::rename(&tmp, &file).map_err(|e| format!("{}: {e}", file.display()))?;
         let _ = std::fs::File::open(dir).and_then(|d| d.sync_all());
-        let part = Sealed::open(&file, start, end, self.dims, sha256, None)?;
+        let part = Sealed::open(&file, (start, end), (self.dims, self.params.scalar), sha256, None)?;
         part.index.change_expansion_search(self.params.expansion_search);
         part.verified.store(true, Ordering::Release);
         let fresh = Self::live_index(self.dims, &self.params, self.context_count)?;
@@ -629,6 +698,9 @@ struct SavedGraph {
     dims: usize,
     row_dim: usize,
     connectivity: usize,
+    /// How the rows are stored (records written before i8 graphs: f16).
+    #[serde(default)]
+    scalar: GraphScalar,
     /// SHA-256 of the graph file (the live part).
     sha256: String,
     /// The first row of the live part (records written before graphs were sealed: 0).
@@ -701,6 +773,7 @@ impl Graph {
             dims: self.dims,
             row_dim,
             connectivity: self.params.connectivity,
+            scalar: self.params.scalar,
             sha256: sha256_file(&tmp)?,
             live_start,
             sealed,
@@ -726,6 +799,9 @@ impl Graph {
     pub fn load(path: &Path, row_dim: usize, params: GraphParams, rows_held: usize) -> Result<Self, String> {
         let json = std::fs::read(record_path(path)).map_err(|e| format!("no record beside the graph file: {e}"))?;
         let saved: SavedGraph = serde_json::from_slice(&json).map_err(|e| format!("unreadable record: {e}"))?;
+        // A graph keeps the scalar it was built with (a server whose setting changed does not
+        // rebuild its graphs: new ones take the setting), so its new rows are stored alike.
+        let params = GraphParams { scalar: saved.scalar, ..params };
         let mut graph = Self::new(row_dim, params)?;
         if (saved.dims, saved.row_dim, saved.connectivity) != (graph.dims, row_dim, params.connectivity) {
             return Err(format!(
@@ -743,7 +819,13 @@ impl Graph {
                 return Err(format!("sealed rows {}..{} do not follow row {next}", part.start, part.end));
             }
             let file = part_file(&dir, &(part.start..part.end));
-            let sealed = Sealed::open(&file, part.start, part.end, graph.dims, part.sha256.clone(), Some(part.bytes))?;
+            let sealed = Sealed::open(
+                &file,
+                (part.start, part.end),
+                (graph.dims, params.scalar),
+                part.sha256.clone(),
+                Some(part.bytes),
+            )?;
             sealed.index.change_expansion_search(params.expansion_search);
             graph.sealed.get_mut().push(Arc::new(sealed));
             next = part.end;
@@ -790,16 +872,28 @@ impl Graph {
         Ok(graph)
     }
 
-    /// The graph's stored (reduced, f16) values of a row, if it holds it.
-    pub fn stored(&self, row: usize) -> Option<Vec<f32>> {
-        let mut out = vec![0f32; self.dims];
-        let got = match self.sealed.read().iter().find(|s| (s.start..s.end).contains(&row)) {
-            Some(part) => part.index.get(row as u64, &mut out),
-            None => self.index.read().get(row as u64, &mut out),
-        };
-        match got {
-            Ok(1) => Some(out),
-            _ => None,
+    /// Whether the graph holds `row` as `reduced` (that row from [`Graph::reduce`]): equal to its
+    /// rounding (f16), or to its bytes within one (i8); None if it does not hold the row.
+    pub fn holds(&self, row: usize, reduced: &[f32]) -> Option<bool> {
+        fn get<T: usearch::VectorType + Default + Clone>(graph: &Graph, row: usize) -> Option<Vec<T>> {
+            let mut out = vec![T::default(); graph.dims];
+            let got = match graph.sealed.read().iter().find(|s| (s.start..s.end).contains(&row)) {
+                Some(part) => part.index.get(row as u64, &mut out),
+                None => graph.index.read().get(row as u64, &mut out),
+            };
+            matches!(got, Ok(1)).then_some(out)
+        }
+        match self.params.scalar {
+            GraphScalar::F16 => {
+                let got: Vec<f32> = get(self, row)?;
+                Some(reduced.iter().zip(&got).all(|(a, b)| (a - b).abs() <= 2e-3))
+            }
+            GraphScalar::I8 => {
+                let got: Vec<i8> = get(self, row)?;
+                let mut want = Vec::new();
+                to_i8(reduced, &mut want);
+                Some(want.iter().zip(&got).all(|(a, b)| (i16::from(*a) - i16::from(*b)).abs() <= 1))
+            }
         }
     }
 }

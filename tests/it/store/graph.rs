@@ -2,7 +2,7 @@
 //! queries search it. usearch must not reserve (reallocate) beside a search, and enters each call
 //! on one of a fixed set of contexts; CI's test binary died with SIGSEGV while both ran.
 use crate::common::*;
-use loopd::index::graph::{Graph, GraphParams};
+use loopd::index::graph::{Graph, GraphParams, GraphScalar};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 /// Every Nordland image (summer, then winter) as a unit row of its raw pixels.
@@ -147,8 +147,9 @@ fn sealed_parts_answer_as_one_graph_and_load_mapped() {
     assert_eq!(loaded.expansions(), (params.expansion_add, params.expansion_search));
     assert_eq!(loaded.sealed_parts(), graph.sealed_parts());
     assert_eq!(answers(&loaded), before);
-    // Its own memory: the 300 live rows (1,024 slots reserved), not the 4,500 sealed ones.
-    assert!(loaded.memory_bytes() * 2 < loaded.sealed_bytes(), "{} in memory", loaded.memory_bytes());
+    // Its own memory: the 300 live rows (1,024 slots reserved, and usearch's per-thread search
+    // contexts), less than the 4,500 sealed ones' files (i8: 16.8 MB against 28.5 MB).
+    assert!(loaded.memory_bytes() < loaded.sealed_bytes(), "{} in memory", loaded.memory_bytes());
     assert_eq!((0..4).map(|_| loaded.verify_next().unwrap()).collect::<Vec<_>>(), [true, true, true, false]);
     drop((loaded, graph));
     // Mapped in ahead of the searches when all the parts fit their bound; left to them when not
@@ -180,6 +181,68 @@ fn sealed_parts_answer_as_one_graph_and_load_mapped() {
     std::fs::write(&file, &bytes[..mid]).unwrap();
     let err = Graph::load(&path, dim, params, rows.len()).err().unwrap();
     assert!(err.contains("1500-3000"), "{err}");
+}
+
+/// An i8 graph (`--approx-scalar i8`: each row scaled to ±127, compared by cosine) finds the
+/// rows an f16 graph finds, in about half the bytes: built over every Nordland row and sealed into
+/// parts, its top 10 of every 20th row holds the exact top 10 as well as the f16 graph's does;
+/// saved and loaded it answers the same (also by a server since set to f16: a graph keeps its
+/// scalar), and the sampled check of a loaded graph against the session's rows tells its own row
+/// from another.
+#[test]
+fn an_i8_graph_finds_what_an_f16_graph_finds_in_half_the_bytes() {
+    let (rows, dim) = nordland_rows();
+    let dir = tempfile::tempdir().unwrap();
+    let build = |scalar: GraphScalar| {
+        let params = GraphParams { dims: 0, threads: 2, seal_rows: 1500, scalar, ..Default::default() };
+        let graph = Graph::new(dim, params).unwrap();
+        let reduced = reduced_rows(&graph, &rows);
+        let parts = dir.path().join(format!("{}.parts", scalar.as_str()));
+        for start in (0..rows.len()).step_by(500) {
+            let end = (start + 500).min(rows.len());
+            graph.add_rows(start, &reduced[start..end].concat()).unwrap();
+            graph.seal_if_due(&parts).unwrap();
+        }
+        (graph, reduced, params)
+    };
+    let (f16, reduced, _) = build(GraphScalar::F16);
+    let (i8g, _, i8_params) = build(GraphScalar::I8);
+    let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f32>();
+    let probes: Vec<usize> = (0..rows.len()).step_by(20).collect();
+    let recall = |g: &Graph| -> f32 {
+        let mut hits = 0;
+        for &i in &probes {
+            let mut exact: Vec<(f32, usize)> = (0..rows.len()).map(|r| (dot(&reduced[i], &reduced[r]), r)).collect();
+            exact.sort_by(|a, b| b.0.total_cmp(&a.0));
+            // Ties at the 10th score count as found either way.
+            let tenth = exact[9].0;
+            let found = g.search(&reduced[i], 10, |_| true).unwrap();
+            hits += found.iter().filter(|&&r| dot(&reduced[i], &reduced[r]) >= tenth - 1e-6).count().min(10);
+        }
+        hits as f32 / (probes.len() * 10) as f32
+    };
+    let (r16, r8) = (recall(&f16), recall(&i8g));
+    eprintln!("recall@10 of the graphs' own top 10: f16 {r16:.4}, i8 {r8:.4}");
+    assert!(r8 >= 0.9 && r8 >= r16 - 0.02, "i8 recall@10 {r8} against f16's {r16}");
+    // The sealed parts' files (4,500 rows each; the live part's memory counts reserved slots).
+    let (b8, b16) = (i8g.sealed_bytes(), f16.sealed_bytes());
+    assert!(b8 * 100 < b16 * 55, "i8 parts {b8} bytes, f16 {b16}");
+    // Saved and loaded (the parts mapped): the same answers.
+    let path = dir.path().join("i8.usearch");
+    i8g.save(&path, dim).unwrap();
+    let before: Vec<_> = probes.iter().map(|&i| i8g.search(&reduced[i], 5, |_| true).unwrap()).collect();
+    let loaded = Graph::load(&path, dim, i8_params, rows.len()).unwrap();
+    let after: Vec<_> = probes.iter().map(|&i| loaded.search(&reduced[i], 5, |_| true).unwrap()).collect();
+    assert_eq!(after, before);
+    assert_eq!((loaded.holds(4700, &reduced[4700]), loaded.holds(1600, &reduced[1600])), (Some(true), Some(true)));
+    assert_eq!(loaded.holds(1600, &reduced[4700]), Some(false));
+    // A server since set to f16 keeps the saved graph's i8 (no rebuild), and adds to it as i8.
+    drop(loaded);
+    let f16_params = GraphParams { scalar: GraphScalar::F16, ..i8_params };
+    let kept = Graph::load(&path, dim, f16_params, rows.len()).unwrap();
+    assert_eq!(kept.params().scalar, GraphScalar::I8);
+    let after: Vec<_> = probes.iter().map(|&i| kept.search(&reduced[i], 5, |_| true).unwrap()).collect();
+    assert_eq!(after, before);
 }
 
 /// Writes and the store's indexer never wait on each other. The indexer once took a session's
