@@ -11,6 +11,7 @@ use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
+use usearch::ffi::IndexMetadata;
 use usearch::{Index, IndexOptions, MetricKind, ScalarKind};
 
 /// How a session searches its descriptors.
@@ -216,7 +217,6 @@ impl Sealed {
         sha256: String,
         bytes: Option<u64>,
     ) -> Result<Self, String> {
-        let options = Graph::options(dims, &GraphParams { scalar, ..Default::default() });
         let f = std::fs::File::open(file).map_err(|e| format!("{}: {e}", file.display()))?;
         let len = f.metadata().map_err(|e| format!("{}: {e}", file.display()))?.len();
         if bytes.is_some_and(|b| b != len) {
@@ -237,9 +237,7 @@ impl Sealed {
                 end - start
             ));
         }
-        if meta.quantization != options.quantization || meta.metric != options.metric {
-            return Err(format!("{}: not a {} graph", file.display(), scalar.as_str()));
-        }
+        Graph::check_kinds(file, &meta, scalar)?;
         let index =
             Index::new(&IndexOptions::from(meta)).map_err(|e| format!("creating the approximate index: {e}"))?;
         // SAFETY: the view points into `map`, which `Self` owns and drops after `index` (field
@@ -331,11 +329,26 @@ pub struct Graph {
 }
 
 impl Graph {
-    fn options(dims: usize, params: &GraphParams) -> IndexOptions {
-        let (metric, quantization) = match params.scalar {
+    /// How usearch compares and stores rows of this scalar: f16 rows are unit length, so their
+    /// inner product is the cosine; i8 rows are scaled by `to_i8`, so only the cosine is.
+    fn kinds(scalar: GraphScalar) -> (MetricKind, ScalarKind) {
+        match scalar {
             GraphScalar::F16 => (MetricKind::IP, ScalarKind::F16),
             GraphScalar::I8 => (MetricKind::Cos, ScalarKind::I8),
-        };
+        }
+    }
+
+    /// Refuses a graph file whose header names another scalar or metric than its record: its
+    /// bytes would be read as the wrong values (the graph is then rebuilt from the rows).
+    fn check_kinds(file: &Path, meta: &IndexMetadata, scalar: GraphScalar) -> Result<(), String> {
+        if (meta.metric, meta.quantization) != Self::kinds(scalar) {
+            return Err(format!("{}: not a {} graph", file.display(), scalar.as_str()));
+        }
+        Ok(())
+    }
+
+    fn options(dims: usize, params: &GraphParams) -> IndexOptions {
+        let (metric, quantization) = Self::kinds(params.scalar);
         IndexOptions {
             dimensions: dims,
             metric,
@@ -838,6 +851,8 @@ impl Graph {
             return Err(format!("checksum mismatch (file {sha}, record {})", saved.sha256));
         }
         let path_str = path.to_str().ok_or_else(|| format!("{}: not a UTF-8 path", path.display()))?;
+        let meta = Index::metadata(path_str).map_err(|e| format!("{}: not a graph file: {e}", path.display()))?;
+        Self::check_kinds(path, &meta, params.scalar)?;
         let context_count = graph.context_count;
         let index = graph.index.get_mut();
         index.load(path_str).map_err(|e| format!("loading: {e}"))?;

@@ -187,8 +187,8 @@ fn sealed_parts_answer_as_one_graph_and_load_mapped() {
 /// rows an f16 graph finds, in about half the bytes: built over every Nordland row and sealed into
 /// parts, its top 10 of every 20th row holds the exact top 10 as well as the f16 graph's does;
 /// saved and loaded it answers the same (also by a server since set to f16: a graph keeps its
-/// scalar), and the sampled check of a loaded graph against the session's rows tells its own row
-/// from another.
+/// scalar), the sampled check of a loaded graph against the session's rows tells its own row
+/// from another, and a record naming another scalar than its files is refused.
 #[test]
 fn an_i8_graph_finds_what_an_f16_graph_finds_in_half_the_bytes() {
     let (rows, dim) = nordland_rows();
@@ -243,6 +243,24 @@ fn an_i8_graph_finds_what_an_f16_graph_finds_in_half_the_bytes() {
     assert_eq!(kept.params().scalar, GraphScalar::I8);
     let after: Vec<_> = probes.iter().map(|&i| kept.search(&reduced[i], 5, |_| true).unwrap()).collect();
     assert_eq!(after, before);
+    drop(kept);
+    // A record naming another scalar than its files' headers is refused (the server then rebuilds
+    // the graph from the rows), whether a sealed part or the live part shows it.
+    let misnamed = |path: &std::path::Path| {
+        let record = path.with_extension("json");
+        let json = std::fs::read_to_string(&record).unwrap();
+        assert!(json.contains(r#""scalar":"i8""#), "{json}");
+        std::fs::write(&record, json.replace(r#""scalar":"i8""#, r#""scalar":"f16""#)).unwrap();
+        Graph::load(path, dim, i8_params, rows.len()).err().unwrap()
+    };
+    let err = misnamed(&path);
+    assert!(err.contains("i8.parts") && err.contains("not a f16 graph"), "{err}");
+    let live = Graph::new(dim, GraphParams { seal_rows: rows.len() + 1, ..i8_params }).unwrap();
+    live.add_rows(0, &reduced[..500].concat()).unwrap();
+    let live_path = dir.path().join("live.usearch");
+    live.save(&live_path, dim).unwrap();
+    let err = misnamed(&live_path);
+    assert!(err.contains("live.usearch: not a f16 graph"), "{err}");
 }
 
 /// Writes and the store's indexer never wait on each other. The indexer once took a session's
