@@ -168,75 +168,77 @@ impl Model {
     }
 
     /// Sets every attention/fusion parameter to seeded random values (tests, benchmarks): the
-    /// same seed gives the same network in every run. The values come from a generator of its
-    /// own, drawn in the order of the parameters' names: libtorch's global generator is shared by
-    /// every thread of a process (tests running beside each other draw from it too), and the
-    /// variable store's map has no fixed order.
+    /// same seed gives the same network in every run.
     pub fn randomize(&self, seed: i64, heads_only: bool) {
-        use rand::{Rng, SeedableRng};
-        let mut rng = rand::rngs::StdRng::seed_from_u64(seed as u64);
-        let mut vars: Vec<(String, Tensor)> = self.vs.variables().into_iter().collect();
-        vars.sort_by(|a, b| a.0.cmp(&b.0));
-        tch::no_grad(|| {
-            for (name, mut t) in vars {
-                let head = network::HEAD_PREFIXES.iter().any(|p| name.starts_with(p));
-                if heads_only && !head {
-                    continue;
-                }
-                let n = t.numel();
-                let values: Vec<f32> = if name.ends_with("running_var") {
-                    (0..n).map(|_| rng.random::<f32>() + 0.5).collect()
-                } else {
-                    // Normals: batch-norm scales near 1 (near 0, as the other 1-d values, every
-                    // residual branch is silenced and the output hardly depends on the input),
-                    // other 1-d values near 0, weights scaled by their fan-in.
-                    let (mean, sd) = match (t.dim(), name.ends_with(".weight")) {
-                        (1, true) => (1.0, 0.1),
-                        (1, false) => (0.0, 0.1),
-                        _ => (0.0, (1.0 / t.size().iter().skip(1).product::<i64>().max(1) as f32).sqrt()),
-                    };
-                    (0..n).map(|_| mean + sd * rng.sample::<f32, _>(rand_distr::StandardNormal)).collect()
-                };
-                t.copy_(&Tensor::from_slice(&values).reshape(t.size()));
+        use rand::Rng;
+        self.draw_sorted(seed as u64, |rng, name, t| {
+            let head = network::HEAD_PREFIXES.iter().any(|p| name.starts_with(p));
+            if heads_only && !head {
+                return None;
             }
+            let n = t.numel();
+            Some(if name.ends_with("running_var") {
+                (0..n).map(|_| rng.random::<f32>() + 0.5).collect()
+            } else {
+                // Normals: batch-norm scales near 1 (near 0, as the other 1-d values, every
+                // residual branch is silenced and the output hardly depends on the input),
+                // other 1-d values near 0, weights scaled by their fan-in.
+                let (mean, sd) = match (t.dim(), name.ends_with(".weight")) {
+                    (1, true) => (1.0, 0.1),
+                    (1, false) => (0.0, 0.1),
+                    _ => (0.0, (1.0 / t.size().iter().skip(1).product::<i64>().max(1) as f32).sqrt()),
+                };
+                (0..n).map(|_| mean + sd * rng.sample::<f32, _>(rand_distr::StandardNormal)).collect()
+            })
         });
     }
 
     /// Draws the heads' starting values for training from `seed`, as the layers' own
     /// initialisers draw them (tch's defaults: Kaiming uniform weights, bound sqrt(6 / fan-in);
     /// a linear layer's bias uniform within 1 / sqrt(its inputs); zero-initialised parameters,
-    /// the last layers and the convolutions' biases, stay zero), but from a generator of its own
-    /// in the order of the parameters' names. The initialisers draw from libtorch's global
-    /// generator, which every thread of the process shares: a model loaded on another thread
-    /// between a `manual_seed` and the heads' draws gave the same seed other heads (CI's run of
-    /// `train::the_same_seed_…`, docs/ci.md "Stop 68").
+    /// the last layers and the convolutions' biases, stay zero). The initialisers draw from
+    /// libtorch's global generator, which every thread of the process shares: a model loaded on
+    /// another thread between a `manual_seed` and the heads' draws gave the same seed other heads
+    /// (CI's run of `train::the_same_seed_…`, docs/ci.md "Stop 68").
     pub fn seed_heads(&self, seed: u64) {
-        use rand::{Rng, SeedableRng};
+        use rand::Rng;
+        let fan_in = |size: &[i64]| size.iter().skip(1).product::<i64>().max(1) as f64;
+        let sizes: std::collections::HashMap<String, Vec<i64>> =
+            self.vs.variables().into_iter().map(|(n, t)| (n, t.size())).collect();
+        self.draw_sorted(seed, |rng, name, t| {
+            let head = network::HEAD_PREFIXES.iter().any(|p| name.starts_with(p));
+            if !head || t.abs().max().double_value(&[]) == 0.0 {
+                return None;
+            }
+            let size = t.size();
+            let bound = if size.len() >= 2 {
+                (6.0 / fan_in(&size)).sqrt()
+            } else {
+                // A drawn 1-d parameter is a linear layer's bias: its weight's inputs.
+                let weight = name.strip_suffix("bias").map(|p| format!("{p}weight"));
+                match weight.and_then(|w| sizes.get(&w)) {
+                    Some(w) if w.len() == 2 => 1.0 / (w[1] as f64).sqrt(),
+                    _ => return None,
+                }
+            };
+            Some((0..t.numel()).map(|_| rng.random_range(-bound..bound) as f32).collect())
+        });
+    }
+
+    /// Sets parameters to values drawn from a generator of their own, seeded with `seed`, in the
+    /// order of the parameters' names: libtorch's global generator is shared by every thread of a
+    /// process (tests running beside each other draw from it too), and the variable store's map
+    /// has no fixed order. `draw` gives a parameter's values, or None to leave it as it is.
+    fn draw_sorted(&self, seed: u64, mut draw: impl FnMut(&mut rand::rngs::StdRng, &str, &Tensor) -> Option<Vec<f32>>) {
+        use rand::SeedableRng;
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let mut vars: Vec<(String, Tensor)> = self.vs.variables().into_iter().collect();
         vars.sort_by(|a, b| a.0.cmp(&b.0));
-        let fan_in = |size: &[i64]| size.iter().skip(1).product::<i64>().max(1) as f64;
-        let sizes: std::collections::HashMap<String, Vec<i64>> =
-            vars.iter().map(|(n, t)| (n.clone(), t.size())).collect();
         tch::no_grad(|| {
             for (name, mut t) in vars {
-                let head = network::HEAD_PREFIXES.iter().any(|p| name.starts_with(p));
-                if !head || t.abs().max().double_value(&[]) == 0.0 {
-                    continue;
+                if let Some(values) = draw(&mut rng, &name, &t) {
+                    t.copy_(&Tensor::from_slice(&values).reshape(t.size()));
                 }
-                let size = t.size();
-                let bound = if size.len() >= 2 {
-                    (6.0 / fan_in(&size)).sqrt()
-                } else {
-                    // A drawn 1-d parameter is a linear layer's bias: its weight's inputs.
-                    let weight = name.strip_suffix("bias").map(|p| format!("{p}weight"));
-                    match weight.and_then(|w| sizes.get(&w)) {
-                        Some(w) if w.len() == 2 => 1.0 / (w[1] as f64).sqrt(),
-                        _ => continue,
-                    }
-                };
-                let values: Vec<f32> = (0..t.numel()).map(|_| rng.random_range(-bound..bound) as f32).collect();
-                t.copy_(&Tensor::from_slice(&values).reshape(&size));
             }
         });
     }
