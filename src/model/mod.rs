@@ -186,7 +186,7 @@ impl Model {
                 let (mean, sd) = match (t.dim(), name.ends_with(".weight")) {
                     (1, true) => (1.0, 0.1),
                     (1, false) => (0.0, 0.1),
-                    _ => (0.0, (1.0 / t.size().iter().skip(1).product::<i64>().max(1) as f32).sqrt()),
+                    _ => (0.0, (1.0 / fan_in(&t.size()) as f32).sqrt()),
                 };
                 (0..n).map(|_| mean + sd * rng.sample::<f32, _>(rand_distr::StandardNormal)).collect()
             })
@@ -202,7 +202,6 @@ impl Model {
     /// (CI's run of `train::the_same_seed_…`, docs/ci.md "Stop 68").
     pub fn seed_heads(&self, seed: u64) {
         use rand::Rng;
-        let fan_in = |size: &[i64]| size.iter().skip(1).product::<i64>().max(1) as f64;
         let sizes: std::collections::HashMap<String, Vec<i64>> =
             self.vs.variables().into_iter().map(|(n, t)| (n, t.size())).collect();
         self.draw_sorted(seed, |rng, name, t| {
@@ -277,6 +276,12 @@ pub(crate) fn stack(inputs: &[Tensor], device: Device, kind: tch::Kind) -> Resul
         bail!("inputs of one batch must share a size");
     }
     Ok(Tensor::stack(inputs, 0).to_device(device).to_kind(kind))
+}
+
+/// A weight's inputs per output (its size past the first dimension; 1 for a 1-d parameter): the
+/// fan-in both seeded draws scale by.
+fn fan_in(size: &[i64]) -> f64 {
+    size.iter().skip(1).product::<i64>().max(1) as f64
 }
 
 /// Rows of a [N, D] CPU float tensor.
