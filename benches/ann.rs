@@ -248,9 +248,9 @@ struct Faiss {
     p50_ms: f64,
 }
 
-/// FAISS IndexHNSWFlat (M 16, efConstruction 64) on the same rows (f32, all their values), at
-/// the smallest efSearch reaching `recall10` (or its best).
-fn faiss(flat: &[f32], dim: usize, queries: &[usize], recall10: f64) -> Option<Faiss> {
+/// FAISS IndexHNSWFlat on the same rows (f32, all their values), built with the graph's
+/// connectivity and expansion (`graph`), at the smallest efSearch reaching `recall10` (or its best).
+fn faiss(flat: &[f32], dim: usize, queries: &[usize], recall10: f64, graph: &GraphParams) -> Option<Faiss> {
     let dir = tempfile::tempdir().ok()?;
     let (rows, qs) = (dir.path().join("rows.f32"), dir.path().join("queries.txt"));
     let bytes: Vec<u8> = flat.iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -259,7 +259,7 @@ fn faiss(flat: &[f32], dim: usize, queries: &[usize], recall10: f64) -> Option<F
     let out = std::process::Command::new(root().join(".venv/bin/python"))
         .arg(root().join("benches/py/faiss_hnsw.py"))
         .args([rows.as_path(), qs.as_path()].map(Path::as_os_str))
-        .arg(dim.to_string())
+        .args([dim, graph.connectivity, graph.expansion_add].map(|v| v.to_string()))
         .output()
         .ok()?;
     if !out.status.success() {
@@ -412,7 +412,7 @@ fn main() -> anyhow::Result<()> {
             let in_process = approx.memory_bytes() as f64 / (1u64 << 30) as f64 + mapped_in;
             let rows_file = approx.rows_file_bytes() as f64 / (1u64 << 30) as f64;
             let (reopen_cold, reopen_warm) = reopen(approx, rows_dir.path())?;
-            let f = if with_faiss { faiss(&flat, dim, &ids, all.r10) } else { None };
+            let f = if with_faiss { faiss(&flat, dim, &ids, all.r10, &params()) } else { None };
             drop(flat);
             let fc = |g: fn(&Faiss) -> String| f.as_ref().map_or_else(|| "-".to_string(), g);
             println!(
