@@ -35,6 +35,8 @@ impl SessionIndex {
                 Rows::F16(v) => dots_many_f16(&flat, &v[s * dim..e * dim], dim, out),
                 Rows::F32(v) => dots_many_f32(&flat, &v[s * dim..e * dim], dim, out),
             }
+            // Counted block by block once read, as the single search's scan (`SessionIndex::search`).
+            self.note_read(e - s);
             for (i, row_scores) in out.chunks_exact(b).enumerate() {
                 for (heap, &score) in heaps.iter_mut().zip(row_scores) {
                     if score >= opts.min_score && heap.would_take(score, s + i) && filter.allows(s + i) {
@@ -43,7 +45,6 @@ impl SessionIndex {
                 }
             }
         });
-        self.note_read(n);
         let mut heaps: Vec<TopK> = (0..b).map(|_| TopK::new(k)).collect();
         for (part, _) in parts {
             heaps.iter_mut().zip(part).for_each(|(m, h)| m.merge(h));
