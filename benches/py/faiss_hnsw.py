@@ -3,8 +3,8 @@
 usage: faiss_hnsw.py ROWS_F32 QUERIES_TXT DIM [M [EF_CONSTRUCTION]]
 ROWS_F32: the unit rows, row-major little-endian f32; QUERIES_TXT: one row number per line,
 each queried as a stored frame (itself left out). M (default 16) and efConstruction (default
-128) as loopd's graph is built (benches/ann.rs passes its own), inner product. Prints one JSON line: build rate, and for each efSearch its recall@10 against
-exact search (IndexFlatIP; a result scoring at least the 10th exact score counts, so exact ties
+128) as loopd's graph is built (benches/ann.rs passes its own), inner product. Prints one JSON
+line: build rate, and for each efSearch its recall@10 against exact search (IndexFlatIP; a result scoring at least the 10th exact score counts, so exact ties
 count either way) and its median single-query time.
 """
 import json

@@ -458,7 +458,7 @@ impl SessionIndex {
             }
             // Each block counts once read: a mapped file larger than its resident bound is
             // released as the scan goes, not mapped in whole first (issue #33's 10^7 run: a
-            // 9.5 GiB peak of rows against a 512 MiB bound), and the last blocks once it ends.
+            // 9.5 GiB peak of rows against a 512 MiB bound).
             self.note_read(e - s);
             for (i, &score) in out.iter().enumerate() {
                 // Score first: the filter is only evaluated for would-be results.
